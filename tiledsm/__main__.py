@@ -1,0 +1,5 @@
+import sys
+
+from tiledsm.cli import main
+
+sys.exit(main())

@@ -1,0 +1,53 @@
+"""``tiledsm`` command line: one argparse sub-command per module.
+
+Each command module exposes ``add_parser(subparsers)``, which registers its
+sub-command(s) and sets ``func`` (called with the parsed namespace). Modules
+are listed explicitly (no folder scanning); heavy imports happen inside the
+handlers so ``tiledsm --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from typing import Sequence
+
+from tiledsm import __version__
+from tiledsm.errors import TiledsmError
+
+#: command modules, in the order their commands appear in ``--help``
+COMMAND_MODULES = (
+    "tiledsm.cli.info",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="tiledsm",
+        description="Tiled digital surface models from satellite and UAV image scenes.",
+    )
+    parser.add_argument("--version", action="version", version=f"tiledsm {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).add_parser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        result = args.func(args)
+    except TiledsmError as exc:
+        print(f"tiledsm {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"tiledsm {args.command}: interrupted", file=sys.stderr)
+        return 130
+    return int(result or 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

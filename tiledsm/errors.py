@@ -1,0 +1,51 @@
+"""Exception hierarchy: every error tiledsm raises on purpose derives from
+:class:`TiledsmError`, and its message names the file or field at fault and
+what was expected."""
+
+from __future__ import annotations
+
+__all__ = [
+    "TiledsmError",
+    "InputFileError",
+    "UnsupportedFormatError",
+    "RPCError",
+    "GridError",
+    "NoOverlapError",
+    "RecipeError",
+    "MatchingError",
+]
+
+
+class TiledsmError(Exception):
+    """Base class of all tiledsm errors."""
+
+
+class InputFileError(TiledsmError):
+    """Raised when an input file is missing, unreadable or corrupt."""
+
+
+class UnsupportedFormatError(InputFileError):
+    """Raised when a file exists but is in no format tiledsm can read."""
+
+
+class RPCError(TiledsmError):
+    """Raised when a camera model is missing, garbled (wrong coefficient
+    count, non-finite values) or cannot be inverted."""
+
+
+class GridError(TiledsmError):
+    """Raised when a ground grid is ill-defined (empty bounds, bad
+    resolution, unknown CRS) or lies outside what the images see."""
+
+
+class NoOverlapError(TiledsmError):
+    """Raised when images (or DSMs) have no ground in common."""
+
+
+class RecipeError(TiledsmError):
+    """Raised when a recipe is invalid; the message names the field path."""
+
+
+class MatchingError(TiledsmError):
+    """Raised when dense matching cannot proceed (no valid height range,
+    no tie points)."""
