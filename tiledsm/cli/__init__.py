@@ -19,6 +19,8 @@ from tiledsm.errors import TiledsmError
 #: command modules, in the order their commands appear in ``--help``
 COMMAND_MODULES = (
     "tiledsm.cli.info",
+    "tiledsm.cli.run",
+    "tiledsm.cli.dsm",
 )
 
 

@@ -134,6 +134,14 @@ class RPC:
 
     # ------------------------------------------------------------------ GDAL
     @classmethod
+    def from_file(cls, path) -> "RPC":
+        """Read an RPC from any supported file (see
+        :func:`tiledsm.geometry.rpc_io.read_rpc`)."""
+        from tiledsm.geometry.rpc_io import read_rpc  # local: rpc_io imports this module
+
+        return read_rpc(path)
+
+    @classmethod
     def from_gdal(cls, md: Mapping[str, object], source: str = "") -> "RPC":
         """Build from GDAL's RPC metadata domain (``LINE_OFF``, ...,
         ``SAMP_DEN_COEFF``; coefficient values as space-separated strings or
@@ -265,3 +273,126 @@ class RPC:
     def replace(self, **changes) -> "RPC":
         """A copy with some fields changed (``dataclasses.replace``)."""
         return dataclasses.replace(self, **changes)
+
+    def scaled(self, s: float) -> "RPC":
+        """Exact RPC of the image resampled by factor ``s``.
+
+        GDAL convention on both sides: the image corner stays at (0, 0) and
+        ``new (row, col) = s * old (row, col)`` (``s = 2``: twice as many
+        pixels; ``s = 0.5``: half). Only ``line/samp_off`` and
+        ``line/samp_scale`` change: ``off' = s * (off + .5) - .5``,
+        ``scale' = s * scale``.
+        """
+        s = float(s)
+        if not (np.isfinite(s) and s > 0):
+            raise ValueError(f"RPC.scaled: factor must be finite and > 0, got {s}")
+        return self.replace(
+            line_off=s * (self.line_off + 0.5) - 0.5, samp_off=s * (self.samp_off + 0.5) - 0.5,
+            line_scale=s * self.line_scale, samp_scale=s * self.samp_scale,
+            source=f"{self.source} scaled x{s:g}" if self.source else f"scaled x{s:g}",
+        )
+
+    def cropped(self, row0: float, col0: float) -> "RPC":
+        """Exact RPC of a crop whose top-left corner is pixel ``(row0, col0)``
+        of this image: ``new (row, col) = old (row, col) - (row0, col0)``."""
+        return self.replace(
+            line_off=self.line_off - float(row0), samp_off=self.samp_off - float(col0),
+            source=f"{self.source} cropped at ({row0:g}, {col0:g})" if self.source
+            else f"cropped at ({row0:g}, {col0:g})",
+        )
+
+    def image_window(self) -> tuple[float, float, float, float]:
+        """The RPC's own image normalisation box ``(row0, row1, col0, col1)``
+        (GDAL convention): ``off + .5 ± scale``. Often, not always, the
+        image extent (cropped RPCs keep the full image's ground scales)."""
+        r, c = self.line_off + 0.5, self.samp_off + 0.5
+        return (r - abs(self.line_scale), r + abs(self.line_scale),
+                c - abs(self.samp_scale), c + abs(self.samp_scale))
+
+    def ground_box(
+        self,
+        image_window: tuple[float, float, float, float],
+        h_range: tuple[float, float],
+        n: int = 9,
+    ) -> tuple[tuple[float, float], tuple[float, float]]:
+        """Lon/lat bounding box (degrees) of an image window
+        ``(row0, row1, col0, col1)`` localised at the two heights of
+        ``h_range`` (metres, ellipsoidal), from ``n`` points per window edge.
+        """
+        r0, r1, c0, c1 = image_window
+        t = np.linspace(0.0, 1.0, n)
+        rows = np.concatenate([r0 + (r1 - r0) * t, np.full(n, r1), r0 + (r1 - r0) * t, np.full(n, r0)])
+        cols = np.concatenate([np.full(n, c0), c0 + (c1 - c0) * t, np.full(n, c1), c0 + (c1 - c0) * t])
+        lon, lat = self.localize(rows[:, None], cols[:, None], np.asarray(h_range, float)[None, :])
+        return (float(lon.min()), float(lon.max())), (float(lat.min()), float(lat.max()))
+
+    def with_affine(
+        self,
+        a,
+        b,
+        *,
+        image_shape: tuple[int, int] | None = None,
+        h_range: tuple[float, float] | None = None,
+        max_error: float = 0.01,
+    ) -> "RPC":
+        """Fold an image-space affine bias correction into a new RPC.
+
+        The Grodecki & Dial (2003, PE&RS 69(1) 59-68) model, with line/sample
+        in GDAL's pixel convention (``row``/``col`` as returned by
+        :meth:`project`)::
+
+            row' = row + A0 + A1 * col + A2 * row
+            col' = col + B0 + B1 * col + B2 * row
+
+        and the returned RPC projects ground points to ``(row', col')``.
+
+        When ``A1 == B2 == 0`` (shift + per-axis scale) the result is exact
+        (only offsets and scales change). Otherwise the corrected projection
+        is refitted with :func:`tiledsm.geometry.fit.fit_rpc` over the ground
+        seen by the image (corners localised at ``h_range``) and checked on
+        held-out points: an :class:`~tiledsm.errors.RPCError` is raised if
+        the fit is worse than ``max_error`` pixels.
+
+        Parameters
+        ----------
+        a, b : sequence of 3 floats
+            ``(A0, A1, A2)`` and ``(B0, B1, B2)``; A0/B0 in pixels.
+        image_shape : (rows, cols), optional
+            Image extent for the refit; default: :meth:`image_window`.
+        h_range : (float, float), optional
+            Heights (m, ellipsoidal) for the refit; default
+            ``height_off ± height_scale``.
+        max_error : float
+            Held-out tolerance of the refit, pixels.
+        """
+        a0, a1, a2 = (float(v) for v in a)
+        b0, b1, b2 = (float(v) for v in b)
+        src = f"{self.source} + affine" if self.source else "affine-corrected"
+        if a1 == 0.0 and b2 == 0.0:
+            ka, kb = 1.0 + a2, 1.0 + b1
+            return self.replace(
+                line_off=ka * (self.line_off + 0.5) + a0 - 0.5, line_scale=ka * self.line_scale,
+                samp_off=kb * (self.samp_off + 0.5) + b0 - 0.5, samp_scale=kb * self.samp_scale,
+                source=src,
+            )
+        from tiledsm.geometry.fit import fit_rpc  # local: fit imports this module
+
+        window = (0.0, float(image_shape[0]), 0.0, float(image_shape[1])) if image_shape else self.image_window()
+        if h_range is None:
+            h_range = (self.height_off - abs(self.height_scale), self.height_off + abs(self.height_scale))
+        lon_r, lat_r = self.ground_box(window, h_range)
+
+        def corrected(lon, lat, h):
+            r, c = self.project(lon, lat, h)
+            return r + a0 + a1 * c + a2 * r, c + b0 + b1 * c + b2 * r
+
+        r0, r1, c0, c1 = window
+        corners_r = np.array([r0, r0, r1, r1])
+        corners_c = np.array([c0, c1, c0, c1])
+        nr = corners_r + a0 + a1 * corners_c + a2 * corners_r
+        nc = corners_c + b0 + b1 * corners_c + b2 * corners_r
+        return fit_rpc(
+            corrected, lon_r, lat_r, tuple(h_range),
+            image_window=(nr.min(), nr.max(), nc.min(), nc.max()),
+            max_error=max_error, source=src,
+        )

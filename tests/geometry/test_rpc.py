@@ -1,0 +1,86 @@
+"""RPC derived models: scaled, cropped, with_affine (exact cases)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.conftest import require_shared
+from tiledsm.geometry import RPC
+
+
+@pytest.fixture(scope="module")
+def img01():
+    path = require_shared("s2p_pair", "input_pair", "img_01.tif")
+    import rasterio
+
+    with rasterio.open(path) as ds:
+        return RPC.from_gdal(ds.rpcs.to_dict(), source=str(path)), ds.shape
+
+
+def _ground(rpc, shape, n=500, seed=0):
+    rng = np.random.default_rng(seed)
+    h = rng.uniform(2000, 2600, n)
+    lon, lat = rpc.localize(rng.uniform(0, shape[0], n), rng.uniform(0, shape[1], n), h)
+    return lon, lat, h
+
+
+@pytest.mark.parametrize("s", [2.0, 0.5, 3.0, 1 / 3])
+def test_scaled_is_exact(img01, s):
+    rpc, shape = img01
+    lon, lat, h = _ground(rpc, shape)
+    r, c = rpc.project(lon, lat, h)
+    rs, cs = rpc.scaled(s).project(lon, lat, h)
+    np.testing.assert_allclose(rs, s * r, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(cs, s * c, rtol=0, atol=1e-9)
+
+
+def test_scaled_corner_convention(img01):
+    """Pixel [0, 0] of a 2x image covers the top-left quarter of old pixel [0, 0]:
+    its centre (0.5, 0.5) is old (0.25, 0.25)."""
+    rpc, _ = img01
+    lon, lat = rpc.localize(0.25, 0.25, 2300.0)
+    r, c = rpc.scaled(2).project(lon, lat, 2300.0)
+    assert r == pytest.approx(0.5, abs=1e-9) and c == pytest.approx(0.5, abs=1e-9)
+
+
+def test_cropped_is_exact(img01):
+    rpc, shape = img01
+    lon, lat, h = _ground(rpc, shape)
+    r, c = rpc.project(lon, lat, h)
+    rc, cc = rpc.cropped(100, 250.5).project(lon, lat, h)
+    np.testing.assert_allclose(rc, r - 100, atol=1e-9)
+    np.testing.assert_allclose(cc, c - 250.5, atol=1e-9)
+
+
+def test_crop_then_scale_matches_gdal_window(img01, tmp_path):
+    """Against GDAL: the cropped/scaled RPC written to a GeoTIFF and read by
+    rasterio's RPCTransformer gives our predicted pixel positions."""
+    from rasterio.transform import RPCTransformer
+
+    rpc, shape = img01
+    new = rpc.cropped(10, 20).scaled(2.0)
+    lon, lat, h = _ground(rpc, shape, n=50)
+    r, c = rpc.project(lon, lat, h)
+    with RPCTransformer(new.to_gdal()) as tr:
+        gr, gc = tr.rowcol(lon, lat, zs=h, op=lambda x: x)
+    np.testing.assert_allclose(np.asarray(gr), 2 * (r - 10), atol=1e-3)
+    np.testing.assert_allclose(np.asarray(gc), 2 * (c - 20), atol=1e-3)
+
+
+def test_with_affine_exact_shift_and_scale(img01):
+    rpc, shape = img01
+    a, b = (3.2, 0.0, 1e-4), (-7.5, -2e-4, 0.0)
+    fixed = rpc.with_affine(a, b)
+    lon, lat, h = _ground(rpc, shape)
+    r, c = rpc.project(lon, lat, h)
+    rf, cf = fixed.project(lon, lat, h)
+    np.testing.assert_allclose(rf, r + a[0] + a[2] * r, atol=1e-9)
+    np.testing.assert_allclose(cf, c + b[0] + b[1] * c, atol=1e-9)
+    # the exact path keeps the coefficients
+    np.testing.assert_array_equal(fixed.line_num, rpc.line_num)
+
+
+def test_with_affine_identity_roundtrip(img01):
+    rpc, _ = img01
+    assert rpc.with_affine((0, 0, 0), (0, 0, 0)) == rpc

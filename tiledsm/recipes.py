@@ -1,0 +1,180 @@
+"""Recipes: YAML files that describe a whole run, validated by a schema.
+
+A recipe names its ``pipeline`` (a registry key, see
+:mod:`tiledsm.pipelines`), its inputs, the stage parameters, the ground
+grid, the cluster and the outputs. Unknown or mistyped fields are errors
+that name the field path. The resolved recipe (every default filled in) is
+written next to the outputs as ``recipe.resolved.yaml``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal, Optional
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from tiledsm.errors import RecipeError
+
+__all__ = ["Recipe", "load_recipe", "dump_resolved"]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class SynthInput(_Strict):
+    """A synthetic scene made by :mod:`tiledsm.synth` (known truth)."""
+
+    size: int = Field(512, ge=64, description="image side, pixels")
+    gsd: float = Field(0.5, gt=0, description="ground sample distance, metres")
+    bh: float = Field(0.4, gt=0.05, le=1.0, description="base-to-height ratio of the first two views")
+    seed: int = 0
+    views: int = Field(2, ge=2, le=3)
+    event: bool = False
+
+
+class InputSpec(_Strict):
+    """Either a synthetic scene (``synth``) or images with RPCs (``images``,
+    cameras in their tags, a sidecar, or ``rpcs``)."""
+
+    synth: Optional[SynthInput] = None
+    images: Optional[list[str]] = Field(None, min_length=2)
+    rpcs: Optional[list[Optional[str]]] = None
+    reference: Optional[str] = Field(None, description="reference DSM for metrics (GeoTIFF)")
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        if (self.synth is None) == (self.images is None):
+            raise ValueError("give exactly one of 'synth' (a synthetic scene) or 'images'")
+        if self.rpcs is not None and (self.images is None or len(self.rpcs) != len(self.images)):
+            raise ValueError("'rpcs' needs one entry per image")
+        return self
+
+
+class GridSpec(_Strict):
+    """Output ground grid; everything optional (derived from the views)."""
+
+    like: Optional[str] = Field(None, description="align to this raster's grid (CRS, transform, shape)")
+    crs: Optional[str] = None
+    resolution: Optional[float] = Field(None, gt=0, description="metres")
+    bounds: Optional[tuple[float, float, float, float]] = Field(None, description="xmin ymin xmax ymax, grid CRS")
+    chunk: int = Field(512, ge=32, description="chunk side, cells")
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        if self.like and (self.crs or self.bounds or self.resolution):
+            raise ValueError("give either 'like' or crs/resolution/bounds, not both")
+        if self.bounds and not (self.crs and self.resolution):
+            raise ValueError("'bounds' needs 'crs' and 'resolution'")
+        return self
+
+
+class MatchSpec(_Strict):
+    """Dense matching parameters (see :class:`tiledsm.match.sgvll.SGVLLParams`)."""
+
+    levels: int = Field(3, ge=1, le=6)
+    height_range: Optional[tuple[float, float]] = None
+    height_margin: float = Field(10.0, ge=0)
+    relative_correction: bool = True
+    params: dict[str, Any] = Field(default_factory=dict, description="SGVLLParams fields")
+
+
+class ClusterSpec(_Strict):
+    scheduler: Optional[str] = Field(None, description="None: local cluster; 'synchronous'; or tcp://host:port")
+    workers: Optional[int] = Field(None, ge=1)
+
+
+class OutputSpec(_Strict):
+    cog: bool = True
+    quicklook: bool = True
+    geoid: Optional[str] = Field(None, description="geoid grid (.gtx): write heights above the geoid")
+
+
+class DSMRecipe(_Strict):
+    """``pipeline: dsm`` — views (or a synthetic scene) to a DSM with a report."""
+
+    pipeline: Literal["dsm"]
+    name: str = "dsm"
+    input: InputSpec
+    grid: GridSpec = GridSpec()
+    match: MatchSpec = MatchSpec()
+    cluster: ClusterSpec = ClusterSpec()
+    output: OutputSpec = OutputSpec()
+
+
+Recipe = DSMRecipe
+_PIPELINES: dict[str, type[BaseModel]] = {"dsm": DSMRecipe}
+
+
+def register_recipe(name: str, model: type[BaseModel]) -> None:
+    """Add a pipeline's schema to the registry (duplicates refused)."""
+    if name in _PIPELINES:
+        raise ValueError(f"recipe pipeline {name!r} is already registered")
+    _PIPELINES[name] = model
+
+
+def _format_errors(path: Path, exc: ValidationError) -> str:
+    lines = []
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        lines.append(f"  {loc}: {err['msg']}")
+    return f"{path}: invalid recipe\n" + "\n".join(lines)
+
+
+def load_recipe(path: str | Path, overrides: dict[str, Any] | None = None) -> BaseModel:
+    """Read and validate a recipe file.
+
+    Relative input paths are resolved against the recipe's folder.
+
+    Raises
+    ------
+    RecipeError
+        Unreadable YAML, unknown pipeline, or a field that fails the schema
+        (the message lists each field path and what was expected).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise RecipeError(f"{path}: cannot read recipe ({exc.strerror})") from exc
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise RecipeError(f"{path}: not valid YAML ({exc})") from exc
+    if not isinstance(data, dict):
+        raise RecipeError(f"{path}: a recipe is a mapping of fields, got {type(data).__name__}")
+    for key, value in (overrides or {}).items():
+        data[key] = value
+    name = data.get("pipeline")
+    if name not in _PIPELINES:
+        raise RecipeError(f"{path}: pipeline: expected one of {sorted(_PIPELINES)}, got {name!r}")
+    data = _resolve_paths(data, path.parent)
+    try:
+        return _PIPELINES[name].model_validate(data)
+    except ValidationError as exc:
+        raise RecipeError(_format_errors(path, exc)) from None
+
+
+_PATH_KEYS = {"images", "rpcs", "reference", "like", "geoid", "stable_mask", "pre", "post", "dem"}
+
+
+def _resolve_paths(data: Any, base: Path, key: str | None = None) -> Any:
+    """Make relative file paths in path-valued fields relative to ``base``."""
+    if isinstance(data, dict):
+        return {k: _resolve_paths(v, base, k) for k, v in data.items()}
+    if isinstance(data, list):
+        return [_resolve_paths(v, base, key) for v in data]
+    if key in _PATH_KEYS and isinstance(data, str) and not Path(data).is_absolute():
+        return str((base / data).resolve())
+    return data
+
+
+def dump_resolved(recipe: BaseModel, path: str | Path) -> None:
+    """Write the resolved recipe (defaults filled in) as YAML, atomically."""
+    from tiledsm.io import atomic_path
+
+    text = yaml.safe_dump(recipe.model_dump(mode="json"), sort_keys=False)
+    with atomic_path(Path(path)) as tmp:
+        Path(tmp).write_text(text)
