@@ -1,0 +1,359 @@
+"""Ground grids: the regular, north-up, projected grids DSMs live on.
+
+Conventions
+-----------
+- A grid is north-up with square cells of ``resolution`` metres (CRS units).
+  ``(x0, y0)`` is the **outer corner** of the top-left cell (west edge,
+  north edge); the centre of cell ``[i, j]`` is at
+  ``(x0 + (j + 0.5) * res, y0 - (i + 0.5) * res)``. This is GDAL's
+  geotransform convention, so :attr:`GroundGrid.transform` maps
+  ``(col, row)`` with corners at integers, exactly like an image.
+- Row ``i`` grows southward (``y`` decreasing), column ``j`` eastward.
+- ``bounds`` are ``(left, bottom, right, top)`` outer edges, rasterio order.
+- Chunks are square ``chunk x chunk`` cells; the last row/column of chunks
+  holds the remainder.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+from affine import Affine
+from pyproj import CRS
+from pyproj.exceptions import CRSError
+
+from tiledsm.errors import GridError, InputFileError
+
+__all__ = ["GroundGrid", "utm_crs", "grid_for_footprint", "DEFAULT_CHUNK"]
+
+#: default chunk edge, cells
+DEFAULT_CHUNK = 512
+
+# relative tolerance used when snapping bounds to multiples of the resolution,
+# so that bounds already on the lattice are not pushed out by rounding noise
+_SNAP_EPS = 1e-9
+
+
+def _chunk_sizes(n: int, chunk: int) -> tuple[int, ...]:
+    full, rest = divmod(n, chunk)
+    return (chunk,) * full + ((rest,) if rest else ())
+
+
+@dataclass(frozen=True)
+class GroundGrid:
+    """A north-up regular grid in a projected CRS.
+
+    Parameters
+    ----------
+    crs : str
+        Any CRS string pyproj understands (``"EPSG:32740"``, WKT, PROJ).
+    x0, y0 : float
+        West and north outer edges of the grid, CRS units (metres).
+    resolution : float
+        Cell edge, CRS units (metres), > 0.
+    width, height : int
+        Number of columns and rows, > 0.
+    chunk : int
+        Chunk edge in cells for dask and zarr, > 0.
+
+    Raises
+    ------
+    GridError
+        Non-positive or non-finite resolution, empty shape, bad chunk or a
+        CRS pyproj cannot parse.
+    """
+
+    crs: str
+    x0: float
+    y0: float
+    resolution: float
+    width: int
+    height: int
+    chunk: int = DEFAULT_CHUNK
+
+    def __post_init__(self) -> None:
+        res = float(self.resolution)
+        if not math.isfinite(res) or res <= 0:
+            raise GridError(f"ground grid: resolution must be a positive number of metres, got {self.resolution!r}")
+        for name in ("x0", "y0"):
+            v = float(getattr(self, name))
+            if not math.isfinite(v):
+                raise GridError(f"ground grid: {name} must be finite, got {v!r}")
+            object.__setattr__(self, name, v)
+        for name in ("width", "height", "chunk"):
+            v = getattr(self, name)
+            if int(v) != v or int(v) <= 0:
+                raise GridError(f"ground grid: {name} must be a positive integer, got {v!r}")
+            object.__setattr__(self, name, int(v))
+        object.__setattr__(self, "resolution", res)
+        try:
+            crs = CRS.from_user_input(self.crs)
+        except CRSError as exc:
+            raise GridError(f"ground grid: unknown CRS {self.crs!r} ({exc})") from exc
+        if crs.is_geographic:
+            raise GridError(
+                f"ground grid: CRS {self.crs!r} is geographic; DSM grids need a projected CRS in metres (e.g. UTM)"
+            )
+        object.__setattr__(self, "crs", str(self.crs))
+
+    # ------------------------------------------------------------ geometry
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(height, width)`` in cells."""
+        return (self.height, self.width)
+
+    @property
+    def x(self) -> np.ndarray:
+        """Cell-centre eastings, shape ``(width,)``, increasing."""
+        return self.x0 + (np.arange(self.width) + 0.5) * self.resolution
+
+    @property
+    def y(self) -> np.ndarray:
+        """Cell-centre northings, shape ``(height,)``, decreasing."""
+        return self.y0 - (np.arange(self.height) + 0.5) * self.resolution
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """Outer edges ``(left, bottom, right, top)``, CRS units."""
+        return (
+            self.x0,
+            self.y0 - self.height * self.resolution,
+            self.x0 + self.width * self.resolution,
+            self.y0,
+        )
+
+    @property
+    def transform(self) -> Affine:
+        """GDAL/rasterio geotransform: ``(col, row)`` corners -> ``(x, y)``."""
+        return Affine(self.resolution, 0.0, self.x0, 0.0, -self.resolution, self.y0)
+
+    @property
+    def chunks(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """Dask chunk sizes ``(row chunks, column chunks)``."""
+        return (_chunk_sizes(self.height, self.chunk), _chunk_sizes(self.width, self.chunk))
+
+    @property
+    def numblocks(self) -> tuple[int, int]:
+        """Number of chunks along rows and columns."""
+        return (-(-self.height // self.chunk), -(-self.width // self.chunk))
+
+    def block_window(self, i: int, j: int) -> tuple[int, int, int, int]:
+        """Half-open cell window ``(row0, row1, col0, col1)`` of chunk ``(i, j)``."""
+        nby, nbx = self.numblocks
+        if not (0 <= i < nby and 0 <= j < nbx):
+            raise GridError(f"ground grid: block ({i}, {j}) outside the {nby}x{nbx} block layout")
+        c = self.chunk
+        return (i * c, min((i + 1) * c, self.height), j * c, min((j + 1) * c, self.width))
+
+    def blocks(self) -> Iterator[tuple[tuple[int, int], tuple[int, int, int, int]]]:
+        """Iterate ``((i, j), (row0, row1, col0, col1))`` over all chunks, row-major."""
+        nby, nbx = self.numblocks
+        for i in range(nby):
+            for j in range(nbx):
+                yield (i, j), self.block_window(i, j)
+
+    def subgrid(self, row0: int, row1: int, col0: int, col1: int) -> "GroundGrid":
+        """The grid of cells ``[row0:row1, col0:col1]`` (half-open, same CRS,
+        resolution and chunk). Indices may lie outside this grid (the
+        sub-grid then extends it, e.g. for a halo), but must be non-empty."""
+        row0, row1, col0, col1 = (int(v) for v in (row0, row1, col0, col1))
+        if row1 <= row0 or col1 <= col0:
+            raise GridError(f"ground grid: empty window rows {row0}:{row1}, cols {col0}:{col1}")
+        return replace(
+            self,
+            x0=self.x0 + col0 * self.resolution,
+            y0=self.y0 - row0 * self.resolution,
+            width=col1 - col0,
+            height=row1 - row0,
+        )
+
+    #: alias of :meth:`subgrid`
+    window = subgrid
+
+    def coords(self) -> dict[str, np.ndarray]:
+        """``{"y": ..., "x": ...}`` cell-centre coordinates for xarray."""
+        return {"y": self.y, "x": self.x}
+
+    def empty(self, dtype: str = "float32", fill: float = np.nan, name: str | None = None):
+        """A lazy dask-backed ``xarray.DataArray`` on this grid filled with
+        ``fill``, with CRS and transform written (rioxarray)."""
+        import dask.array as dsa
+        import rioxarray  # noqa: F401  (registers .rio)
+        import xarray as xr
+
+        data = dsa.full(self.shape, fill, dtype=dtype, chunks=self.chunks)
+        da = xr.DataArray(data, dims=("y", "x"), coords=self.coords(), name=name)
+        return da.rio.write_crs(self.crs).rio.write_transform(self.transform)
+
+    # ------------------------------------------------------- constructors
+    @classmethod
+    def from_bounds(
+        cls,
+        crs: str,
+        bounds: Sequence[float],
+        resolution: float,
+        chunk: int = DEFAULT_CHUNK,
+    ) -> "GroundGrid":
+        """Smallest grid whose edges are multiples of ``resolution`` and
+        which covers ``bounds``.
+
+        Parameters
+        ----------
+        crs : str
+            Projected CRS.
+        bounds : (left, bottom, right, top)
+            CRS units; snapped **outward** to multiples of ``resolution``
+            (so independent runs at the same resolution share one lattice).
+        resolution : float
+            Cell edge, metres.
+        chunk : int
+            Chunk edge, cells.
+        """
+        res = float(resolution)
+        if not math.isfinite(res) or res <= 0:
+            raise GridError(f"ground grid: resolution must be a positive number of metres, got {resolution!r}")
+        try:
+            left, bottom, right, top = (float(b) for b in bounds)
+        except (TypeError, ValueError) as exc:
+            raise GridError(f"ground grid: bounds must be (left, bottom, right, top), got {bounds!r}") from exc
+        if not all(math.isfinite(v) for v in (left, bottom, right, top)):
+            raise GridError(f"ground grid: bounds must be finite, got {tuple(bounds)!r}")
+        if not (right > left and top > bottom):
+            raise GridError(f"ground grid: empty bounds (left, bottom, right, top) = {tuple(bounds)!r}")
+        c0 = math.floor(left / res + _SNAP_EPS)
+        c1 = math.ceil(right / res - _SNAP_EPS)
+        r0 = math.floor(bottom / res + _SNAP_EPS)
+        r1 = math.ceil(top / res - _SNAP_EPS)
+        return cls(crs, c0 * res, r1 * res, res, max(c1 - c0, 1), max(r1 - r0, 1), chunk)
+
+    @classmethod
+    def like(cls, ref, chunk: int | None = None) -> "GroundGrid":
+        """The grid of an existing raster (same CRS, transform and shape).
+
+        Parameters
+        ----------
+        ref : str, Path or xarray.DataArray
+            A georeferenced raster file (anything rasterio opens) or a
+            DataArray with rioxarray CRS and transform.
+        chunk : int, optional
+            Chunk edge; default: the DataArray's first dask chunk along
+            ``y`` when it has one, else :data:`DEFAULT_CHUNK`.
+
+        Raises
+        ------
+        InputFileError
+            The file cannot be opened.
+        GridError
+            No CRS, a rotated or non-square pixel grid, or a south-up grid.
+        """
+        if isinstance(ref, (str, Path)):
+            import rasterio
+
+            name = str(ref)
+            try:
+                with rasterio.open(ref) as src:
+                    crs, transform, shape = src.crs, src.transform, (src.height, src.width)
+            except rasterio.errors.RasterioIOError as exc:
+                raise InputFileError(f"{name}: cannot open as a raster ({exc})") from exc
+        else:
+            import rioxarray  # noqa: F401
+
+            name = str(getattr(ref, "name", None) or "DataArray")
+            crs, transform, shape = ref.rio.crs, ref.rio.transform(), ref.rio.shape
+            if chunk is None and getattr(ref, "chunks", None):
+                chunk = int(ref.chunks[ref.get_axis_num("y")][0])
+        if crs is None:
+            raise GridError(f"{name}: has no CRS; cannot align a ground grid to it")
+        a, b, c, d, e, f = transform[:6]
+        if b != 0 or d != 0:
+            raise GridError(f"{name}: rotated geotransform {tuple(transform[:6])} is not supported")
+        if e >= 0:
+            raise GridError(f"{name}: geotransform is not north-up (e = {e})")
+        if not math.isclose(a, -e, rel_tol=1e-9):
+            raise GridError(f"{name}: non-square cells ({a} x {-e}) are not supported")
+        crs_str = crs.to_string() if hasattr(crs, "to_string") else str(crs)
+        return cls(crs_str, c, f, a, shape[1], shape[0], chunk or DEFAULT_CHUNK)
+
+
+def utm_crs(lon: float, lat: float) -> str:
+    """The WGS84 / UTM zone CRS containing a point.
+
+    Standard 6-degree zones (``zone = floor((lon + 180) / 6) + 1``), north
+    (EPSG:326zz) for ``lat >= 0`` else south (EPSG:327zz); the Norway and
+    Svalbard exceptions of the MGRS are not applied.
+
+    Parameters
+    ----------
+    lon, lat : float
+        Degrees; longitude is wrapped into [-180, 180).
+
+    Returns
+    -------
+    str
+        ``"EPSG:326zz"`` or ``"EPSG:327zz"``.
+    """
+    lon, lat = float(lon), float(lat)
+    if not (math.isfinite(lon) and math.isfinite(lat)) or abs(lat) > 90:
+        raise GridError(f"utm_crs: invalid position lon={lon}, lat={lat}")
+    lon = (lon + 180.0) % 360.0 - 180.0
+    zone = min(int(math.floor((lon + 180.0) / 6.0)) + 1, 60)
+    code = (32600 if lat >= 0 else 32700) + zone
+    return f"EPSG:{code}"
+
+
+def grid_for_footprint(
+    rpc,
+    image_shape: tuple[int, int],
+    h_range: tuple[float, float],
+    resolution: float,
+    crs: str | None = None,
+    chunk: int = DEFAULT_CHUNK,
+) -> GroundGrid:
+    """A ground grid covering everything an image can see in a height range.
+
+    The image boundary is localised at the lowest and highest height; the
+    grid is the bounding box of those polygons in ``crs`` snapped outward
+    (:meth:`GroundGrid.from_bounds`).
+
+    Parameters
+    ----------
+    rpc : RPC
+        Camera of the image.
+    image_shape : (rows, cols)
+        Image size, pixels.
+    h_range : (hmin, hmax)
+        Ellipsoidal heights, metres.
+    resolution : float
+        Cell edge, metres.
+    crs : str, optional
+        Output CRS; default the UTM zone of the footprint centre.
+    chunk : int
+        Chunk edge, cells.
+    """
+    from pyproj import Transformer
+
+    from tiledsm.geometry.footprint import ground_polygon
+
+    hmin, hmax = _check_h_range(h_range)
+    polys = np.concatenate([ground_polygon(rpc, image_shape, h) for h in (hmin, hmax)])
+    if crs is None:
+        lon_c = 0.5 * (polys[:, 0].min() + polys[:, 0].max())
+        lat_c = 0.5 * (polys[:, 1].min() + polys[:, 1].max())
+        crs = utm_crs(lon_c, lat_c)
+    tr = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+    x, y = tr.transform(polys[:, 0], polys[:, 1])
+    return GroundGrid.from_bounds(crs, (x.min(), y.min(), x.max(), y.max()), resolution, chunk)
+
+
+def _check_h_range(h_range) -> tuple[float, float]:
+    try:
+        hmin, hmax = (float(h) for h in h_range)
+    except (TypeError, ValueError) as exc:
+        raise GridError(f"height range must be (hmin, hmax) in metres, got {h_range!r}") from exc
+    if not (math.isfinite(hmin) and math.isfinite(hmax)) or hmin > hmax:
+        raise GridError(f"height range must be finite with hmin <= hmax, got {h_range!r}")
+    return hmin, hmax

@@ -1,0 +1,934 @@
+"""Scenes and stores: open images with their camera, write products atomically,
+and fill chunked zarr stores block by block with resume.
+
+Conventions
+-----------
+- **Scenes** (:func:`open_scene`) are lazy, dask-backed ``float32``
+  ``xarray.DataArray`` objects with nodata as NaN. Dims are ``(y, x)`` for
+  one band, ``(band, y, x)`` otherwise. A scene in sensor geometry (no CRS:
+  raw images, and crops whose geotransform only holds a pixel offset) has
+  ``y``/``x`` coordinates equal to **pixel centres in the RPC/GDAL
+  convention of this array**: ``y[i] = i + 0.5``, ``x[j] = j + 0.5`` (the
+  top-left image corner is (0, 0)), so ``rpc.project`` output compares
+  directly with them. A crop's offset is *not* added: the camera returned
+  for a crop describes the crop. A georeferenced raster keeps its CRS
+  coordinates (cell centres).
+- The camera travels in ``attrs["rpc"]`` as GDAL's RPC metadata dict
+  (``str -> str``, see :meth:`tiledsm.geometry.RPC.to_gdal`), which survives
+  zarr attributes and GeoTIFF RPC tags; ``attrs["camera_source"]`` says where
+  it came from and ``attrs["source_path"]`` which file the pixels came from.
+- **Writes are atomic** (:func:`atomic_path`): every writer writes to a
+  hidden temporary sibling and renames it onto the final name only when the
+  write succeeded. A killed run leaves at most a hidden ``.NAME.tmp-*``
+  sibling, never a half-written product under the final name. Paths are
+  local (POSIX rename); object stores are not supported by the writers.
+- **Resumable stores** (:func:`create_store`, :class:`ChunkStore`,
+  :func:`write_blocks`): a stage's output grid is a zarr v3 store whose
+  chunks are the stage's blocks. Each dask task writes its own block and
+  then sets that block's completion marker; the client never gathers the
+  array. While incomplete the store lives at ``NAME.partial``; when every
+  marker is set :meth:`ChunkStore.finalize` renames it to ``NAME``.
+  Completion is tracked by the uint8 zarr array ``_progress/done`` of shape
+  ``numblocks`` with one zarr chunk per element (one file per block, so
+  concurrent tasks never write the same file); a marker is written only
+  after the block's data, so a task killed mid-write leaves its block
+  pending and it is recomputed on resume. xarray ignores the ``_progress``
+  sub-group when reading the store.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import shutil
+import uuid
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterator, Mapping, Sequence
+
+import dask
+import numpy as np
+import rioxarray  # noqa: F401  (registers the .rio accessor used on every product)
+import xarray as xr
+
+from tiledsm.errors import GridError, InputFileError, RPCError, TiledsmError, UnsupportedFormatError
+from tiledsm.geometry.rpc import RPC
+
+__all__ = [
+    "open_scene",
+    "scene_rpc",
+    "atomic_path",
+    "write_zarr",
+    "open_product",
+    "write_cog",
+    "write_geotiff_with_rpc",
+    "ChunkStore",
+    "create_store",
+    "write_blocks",
+    "write_resumable",
+]
+
+#: dataset attribute naming the variable when a store holds one DataArray
+_DA_ATTR = "tiledsm_dataarray"
+#: xarray's placeholder name for an unnamed DataArray
+_UNNAMED = "__xarray_dataarray_variable__"
+#: dataset attribute describing a resumable store's layout
+_STORE_ATTR = "tiledsm_store"
+_PROGRESS = "_progress"
+
+
+# --------------------------------------------------------------------------- atomic
+def _remove(p: Path) -> None:
+    if p.is_dir() and not p.is_symlink():
+        shutil.rmtree(p, ignore_errors=True)
+    else:
+        with contextlib.suppress(FileNotFoundError):
+            p.unlink()
+
+
+def _tmp_sibling(final: Path, tag: str) -> Path:
+    return final.with_name(f".{final.name}.{tag}-{uuid.uuid4().hex[:10]}{final.suffix}")
+
+
+def _commit(tmp: Path, final: Path) -> None:
+    """Move ``tmp`` onto ``final``. Files: one atomic ``os.replace``.
+    Directories: the old one is first renamed aside, so ``final`` is at every
+    instant either the complete old or the complete new product (or absent
+    for the instant between the two renames)."""
+    if final.exists() and (final.is_dir() or tmp.is_dir()):
+        old = _tmp_sibling(final, "old")
+        os.rename(final, old)
+        os.rename(tmp, final)
+        _remove(old)
+    else:
+        os.replace(tmp, final)
+    side_tmp, side_final = Path(str(tmp) + ".aux.xml"), Path(str(final) + ".aux.xml")
+    if side_tmp.exists():
+        os.replace(side_tmp, side_final)
+    elif final.is_file():
+        with contextlib.suppress(FileNotFoundError):
+            side_final.unlink()  # stale GDAL sidecar of a previous product
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, overwrite: bool = True) -> Iterator[Path]:
+    """Write a file or directory atomically.
+
+    Yields a temporary sibling path (hidden, same suffix, same filesystem);
+    write the product there. On normal exit it is renamed onto ``path``
+    (replacing an existing product); on any exception it is deleted and the
+    exception propagates, leaving ``path`` untouched.
+
+    Parameters
+    ----------
+    path : path-like
+        Final product path (file or directory). Parent folders are created.
+    overwrite : bool
+        When False and ``path`` exists, raise :class:`TiledsmError` before
+        writing anything.
+
+    Examples
+    --------
+    >>> with atomic_path("out/dsm.tif") as tmp:          # doctest: +SKIP
+    ...     write_something(tmp)
+    """
+    final = Path(path)
+    if not overwrite and final.exists():
+        raise TiledsmError(f"{final}: already exists (refusing to overwrite)")
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp_sibling(final, "tmp")
+    try:
+        yield tmp
+        if not tmp.exists():
+            raise TiledsmError(f"{final}: the writer produced nothing at its temporary path {tmp}")
+        _commit(tmp, final)
+    except BaseException:
+        _remove(tmp)
+        _remove(Path(str(tmp) + ".aux.xml"))
+        raise
+
+
+# --------------------------------------------------------------------------- scenes
+def _find_camera(image_path: Path, rpc) -> tuple[RPC, str]:
+    """Camera of an image: :func:`tiledsm.geometry.rpc_io.find_camera`."""
+    if isinstance(rpc, RPC):
+        return rpc, rpc.source or "RPC object given"
+    from tiledsm.geometry.rpc_io import find_camera  # lazy: keeps tiledsm.io import light
+
+    return find_camera(image_path, rpc)
+
+
+def open_scene(
+    path: str | os.PathLike,
+    chunks: int | str | Mapping[str, int] = 1024,
+    rpc: "RPC | str | os.PathLike | None" = None,
+    band: int | None = None,
+    require_camera: bool = True,
+) -> xr.DataArray:
+    """Open an image lazily with its camera.
+
+    Parameters
+    ----------
+    path : path-like
+        Any raster GDAL reads (GeoTIFF, NITF, JP2...).
+    chunks : int, "auto" or dict
+        Dask chunk edge in pixels (``y`` and ``x``), or a dict per dim.
+        Bands are kept in one chunk.
+    rpc : RPC, path-like or None
+        Explicit camera: an :class:`RPC` or a file holding one. Default:
+        from the image itself or a same-stem sidecar (``.geom``, ``.RPB``,
+        ``_RPC.TXT``, ``.XML``), see ``tiledsm.geometry.rpc_io.find_camera``.
+    band : int, optional
+        1-based band to select (dims then ``(y, x)``).
+    require_camera : bool
+        When False, a raster without camera opens anyway (no ``rpc`` attr),
+        e.g. a DSM.
+
+    Returns
+    -------
+    xarray.DataArray
+        ``float32`` dask-backed, nodata as NaN, dims ``(y, x)`` or
+        ``(band, y, x)``; coordinates: see the module conventions. Attrs:
+        ``rpc`` (GDAL RPC dict), ``camera_source``, ``source_path``, plus the
+        file's own metadata tags.
+
+    Raises
+    ------
+    InputFileError
+        Missing or unreadable file (:class:`UnsupportedFormatError` when GDAL
+        does not recognise it).
+    RPCError
+        No camera found (when ``require_camera``) or a garbled one.
+    """
+    import rasterio
+    from affine import Affine
+    from rasterio.errors import NotGeoreferencedWarning
+
+    p = Path(path)
+    if not p.exists():
+        raise InputFileError(f"{p}: no such file")
+    if not p.is_file():
+        raise InputFileError(f"{p}: not a file")
+    ch = {"y": chunks, "x": chunks} if isinstance(chunks, (int, str)) else dict(chunks)
+    ch.setdefault("band", -1)
+    try:
+        with warnings.catch_warnings():  # sensor-geometry images have no geotransform by design
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            da = rioxarray.open_rasterio(p, chunks=ch, masked=True, mask_and_scale=True)
+    except rasterio.errors.RasterioIOError as exc:
+        msg = str(exc)
+        cls = UnsupportedFormatError if "not recognized" in msg or "supported file format" in msg else InputFileError
+        raise cls(f"{p}: cannot open as a raster ({msg})") from exc
+    if isinstance(da, list) or isinstance(da, xr.Dataset):
+        raise UnsupportedFormatError(f"{p}: holds several subdatasets; open one of them")
+    if band is not None:
+        if band not in da.band.values:
+            raise InputFileError(f"{p}: has no band {band} (bands {list(map(int, da.band.values))})")
+        da = da.sel(band=band, drop=True)
+    elif da.sizes["band"] == 1:
+        da = da.squeeze("band", drop=True)
+    if da.dtype != np.float32:
+        da = da.astype(np.float32)
+    attrs = {k: v for k, v in da.attrs.items() if k not in ("scale_factor", "add_offset", "_FillValue")}
+    if da.rio.crs is None:
+        ny, nx = da.sizes["y"], da.sizes["x"]
+        da = da.assign_coords(y=np.arange(ny) + 0.5, x=np.arange(nx) + 0.5)
+        da = da.rio.write_transform(Affine.identity())
+    try:
+        camera, desc = _find_camera(p, rpc)
+    except RPCError:
+        if rpc is not None or require_camera:
+            raise
+    else:
+        attrs["rpc"] = camera.to_gdal()
+        attrs["camera_source"] = desc
+    attrs["source_path"] = str(p.resolve())
+    da.attrs = attrs
+    da.encoding = {"source": str(p)}
+    da.name = da.name or p.stem
+    return da
+
+
+def scene_rpc(da: xr.DataArray) -> RPC:
+    """The camera stored in a scene's attrs (see :func:`open_scene`).
+
+    Raises
+    ------
+    RPCError
+        The DataArray carries no ``rpc`` attribute (message names its source).
+    """
+    md = da.attrs.get("rpc")
+    src = da.attrs.get("source_path") or da.name or "DataArray"
+    if md is None:
+        raise RPCError(f"{src}: no camera in attrs['rpc']")
+    if isinstance(md, str):  # flattened by a format that stores strings only
+        md = json.loads(md)
+    return RPC.from_gdal(md, source=str(da.attrs.get("camera_source") or src))
+
+
+# --------------------------------------------------------------------------- zarr
+def _clean_for_zarr(ds: xr.Dataset) -> xr.Dataset:
+    ds = ds.copy()
+    for v in ds.variables.values():
+        keep = {k: v.encoding[k] for k in ("compressors", "filters") if k in v.encoding}
+        v.encoding = keep
+    return ds
+
+
+def _as_dataset(obj) -> xr.Dataset:
+    if isinstance(obj, xr.DataArray):
+        name = obj.name if obj.name is not None else _UNNAMED
+        ds = obj.to_dataset(name=name, promote_attrs=False)
+        ds.attrs = {_DA_ATTR: name}
+        return ds
+    if isinstance(obj, xr.Dataset):
+        return obj
+    raise TypeError(f"write_zarr: expected an xarray DataArray or Dataset, got {type(obj).__name__}")
+
+
+def _uniform_chunks(ds: xr.Dataset) -> xr.Dataset:
+    """Zarr needs equal chunks along each dim except the last one."""
+    fixes = {}
+    for name, var in ds.data_vars.items():
+        if var.chunks is None:
+            continue
+        for dim, c in zip(var.dims, var.chunks):
+            if len(c) > 1 and (len(set(c[:-1])) > 1 or c[-1] > c[0]):
+                fixes[dim] = max(c)
+    return ds.chunk(fixes) if fixes else ds
+
+
+def write_zarr(
+    obj: xr.DataArray | xr.Dataset,
+    path: str | os.PathLike,
+    *,
+    mode: str = "w",
+    compute: Callable | None = None,
+) -> Path:
+    """Write a DataArray or Dataset as a zarr v3 store, atomically.
+
+    CRS and transform written by rioxarray (the ``spatial_ref`` coordinate)
+    and all attrs (RPC dicts, provenance) are stored; dask-backed data is
+    computed chunk by chunk straight into the store (zarr chunks = dask
+    chunks).
+
+    Parameters
+    ----------
+    obj : DataArray or Dataset
+    path : path-like
+        Store directory (conventionally ``*.zarr``).
+    mode : {"w", "w-"}
+        ``"w"`` replaces an existing store (atomically), ``"w-"`` refuses.
+    compute : callable, optional
+        ``compute(delayed)`` runs the write (e.g. with a progress bar or a
+        distributed client); it receives the ``dask.delayed`` object of
+        ``to_zarr(..., compute=False)``. Default: ``delayed.compute()``.
+
+    Returns
+    -------
+    pathlib.Path
+        The final store path.
+    """
+    if mode not in ("w", "w-"):
+        raise ValueError(f"write_zarr: mode must be 'w' or 'w-', got {mode!r}")
+    ds = _uniform_chunks(_clean_for_zarr(_as_dataset(obj)))
+    final = Path(path)
+    with atomic_path(final, overwrite=(mode == "w")) as tmp:
+        delayed = ds.to_zarr(tmp, mode="w-", zarr_format=3, consolidated=False, compute=False)
+        (compute or dask.compute)(delayed)
+    return final
+
+
+def _read_progress(path: Path) -> np.ndarray | None:
+    """Completion markers of a resumable store, or None for a plain store."""
+    import zarr
+
+    if not (Path(path) / _PROGRESS / "done" / "zarr.json").is_file():
+        return None
+    return np.asarray(zarr.open_array(store=str(path), path=f"{_PROGRESS}/done", mode="r")[...]).astype(bool)
+
+
+def open_product(
+    path: str | os.PathLike, chunks: "str | Mapping | None" = "native", allow_incomplete: bool = False
+) -> xr.DataArray | xr.Dataset:
+    """Open a product written by tiledsm (zarr store or GeoTIFF/COG).
+
+    Parameters
+    ----------
+    path : path-like
+        A ``.zarr`` store from :func:`write_zarr` / :func:`create_store`,
+        or a GeoTIFF (opened like :func:`open_scene` without camera).
+    chunks : "native", "auto", dict or None
+        Dask chunks: ``"native"`` (default) one dask chunk per zarr chunk;
+        other values are passed to ``xarray.open_zarr``.
+    allow_incomplete : bool
+        Open a resumable store that still has pending blocks.
+
+    Returns
+    -------
+    DataArray or Dataset
+        A DataArray when the store was written from one (same name, attrs,
+        CRS via the ``spatial_ref`` coordinate), else a Dataset.
+
+    Raises
+    ------
+    InputFileError
+        Missing path, not a zarr store, or an incomplete store.
+    """
+    p = Path(path)
+    if not p.exists():
+        partial = Path(str(p) + ".partial")
+        extra = f" (an unfinished store exists at {partial})" if partial.exists() else ""
+        raise InputFileError(f"{p}: no such product{extra}")
+    if p.is_file():
+        return open_scene(p, require_camera=False, chunks=chunks if isinstance(chunks, (int, dict)) else 1024)
+    try:
+        ds = xr.open_zarr(
+            p, chunks={} if chunks == "native" else chunks, decode_coords="all", consolidated=False, zarr_format=3
+        )
+    except (FileNotFoundError, KeyError, ValueError, OSError) as exc:
+        raise InputFileError(f"{p}: not a readable zarr v3 store ({exc})") from exc
+    done = _read_progress(p)
+    if done is not None and not done.all() and not allow_incomplete:
+        raise InputFileError(f"{p}: incomplete store ({int((~done).sum())} of {done.size} blocks pending)")
+    ds.attrs.pop(_STORE_ATTR, None)
+    name = ds.attrs.pop(_DA_ATTR, None)
+    if name is None:
+        return ds
+    da = ds[name]
+    if name == _UNNAMED:
+        da.name = None
+    return da
+
+
+# --------------------------------------------------------------------------- GeoTIFF
+def _tag_value(v) -> str:
+    if isinstance(v, str):
+        return v
+    if isinstance(v, (dict, list, tuple)):
+        return json.dumps(v)
+    if isinstance(v, np.generic):
+        return str(v.item())
+    return str(v)
+
+
+def _write_gtiff(
+    data,
+    path: Path,
+    *,
+    dtype,
+    nodata,
+    transform=None,
+    crs=None,
+    rpc: RPC | None = None,
+    tags: Mapping | None = None,
+    tiled: bool = True,
+    compress: str | None = "DEFLATE",
+    blocksize: int = 512,
+) -> None:
+    """Write a 2-D/3-D numpy or dask array to a GTiff, one dask block row at
+    a time (bounded memory: one strip of blocks)."""
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning
+    from rasterio.rpc import RPC as RioRPC
+    from rasterio.windows import Window
+
+    arr = data
+    if arr.ndim == 2:
+        arr = arr[None]
+    if arr.ndim != 3:
+        raise ValueError(f"{path}: expected a 2-D (y, x) or 3-D (band, y, x) array, got shape {data.shape}")
+    nb, ny, nx = (int(s) for s in arr.shape)
+    profile = dict(driver="GTiff", width=nx, height=ny, count=nb, dtype=np.dtype(dtype).name, nodata=nodata)
+    if transform is not None:
+        profile["transform"] = transform
+    if crs is not None:
+        profile["crs"] = crs
+    if tiled and nx >= 16 and ny >= 16:
+        bs = max(16, min(int(blocksize), 1 << int(math.log2(max(min(nx, ny), 16)))) // 16 * 16)
+        profile.update(tiled=True, blockxsize=bs, blockysize=bs)
+    if compress:
+        profile["compress"] = compress
+    if nx * ny * nb * np.dtype(dtype).itemsize > 3_500_000_000:
+        profile["BIGTIFF"] = "YES"
+    is_dask = hasattr(arr, "dask")
+    steps = arr.chunks[1] if is_dask else (ny,)
+    with rasterio.Env(GDAL_PAM_ENABLED="NO"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        with rasterio.open(path, "w", **profile) as dst:
+            if rpc is not None:
+                dst.rpcs = RioRPC.from_gdal(rpc.to_gdal())
+            if tags:
+                dst.update_tags(**{str(k): _tag_value(v) for k, v in tags.items()})
+            r0 = 0
+            for h in steps:
+                block = np.asarray(arr[:, r0 : r0 + h, :].compute() if is_dask else arr[:, r0 : r0 + h, :])
+                dst.write(block.astype(dtype, copy=False), window=Window(0, r0, nx, h))
+                r0 += h
+
+
+def write_geotiff_with_rpc(
+    array,
+    path: str | os.PathLike,
+    rpc: RPC,
+    nodata: float | None = None,
+    dtype=None,
+    tags: Mapping | None = None,
+) -> Path:
+    """Write an image in sensor geometry as a GeoTIFF with RPC tags, atomically.
+
+    GDAL writes the RPC into the TIFF ``RPCCoefficientTag``, which GDAL,
+    rasterio (``src.rpcs``) and :func:`open_scene` read back.
+
+    Parameters
+    ----------
+    array : numpy or dask array, or DataArray
+        ``(y, x)`` or ``(band, y, x)``; dask arrays are written one block
+        row at a time.
+    path : path-like
+    rpc : RPC
+        Camera of this array (GDAL pixel convention).
+    nodata : float, optional
+        Nodata value stored in the file.
+    dtype : dtype, optional
+        Output dtype (default: the array's); values are cast (no rounding or
+        clipping is done: round before writing integers).
+    tags : mapping, optional
+        Extra GDAL metadata tags (values stringified; dicts as JSON).
+    """
+    data = array.data if isinstance(array, xr.DataArray) else array
+    dtype = np.dtype(dtype or data.dtype)
+    final = Path(path)
+    with atomic_path(final) as tmp:
+        _write_gtiff(data, tmp, dtype=dtype, nodata=nodata, rpc=rpc, tags=tags)
+    return final
+
+
+def write_cog(
+    da: xr.DataArray,
+    path: str | os.PathLike,
+    *,
+    dtype="float32",
+    nodata: float | None = float("nan"),
+    compress: str = "DEFLATE",
+    blocksize: int = 512,
+    resampling: str = "AVERAGE",
+) -> Path:
+    """Export a DataArray as a Cloud-Optimised GeoTIFF, atomically.
+
+    The data are streamed (one dask block row at a time) to a temporary
+    tiled GeoTIFF, then converted with GDAL's ``COG`` driver (overviews,
+    ``resampling``), and renamed onto ``path``.
+
+    Parameters
+    ----------
+    da : DataArray
+        ``(y, x)`` or ``(band, y, x)`` with rioxarray CRS/transform; in
+        sensor geometry (no CRS) a camera in ``attrs["rpc"]`` is written as
+        RPC tags.
+    path : path-like
+    dtype : dtype
+        Output dtype.
+    nodata : float or None
+        Nodata (NaN for float products).
+    compress, blocksize, resampling : str, int, str
+        COG creation options.
+    """
+    import rasterio
+    import rasterio.shutil
+    if da.ndim not in (2, 3) or da.dims[-2:] != ("y", "x"):
+        raise ValueError(f"write_cog: expected dims (y, x) or (band, y, x), got {da.dims}")
+    crs = da.rio.crs
+    transform = da.rio.transform() if crs is not None else None
+    rpc = scene_rpc(da) if (crs is None and "rpc" in da.attrs) else None
+    tags = {k: v for k, v in da.attrs.items() if k != "rpc"}
+    final = Path(path)
+    dt = np.dtype(dtype)
+    opts = dict(COMPRESS=compress, BLOCKSIZE=str(blocksize), OVERVIEW_RESAMPLING=resampling)
+    if compress.upper() in ("DEFLATE", "LZW", "ZSTD"):
+        opts["PREDICTOR"] = "FLOATING_POINT" if dt.kind == "f" else "YES"
+    with atomic_path(final) as tmp:
+        src = Path(str(tmp) + ".src.tif")
+        try:
+            _write_gtiff(
+                da.data, src, dtype=dt, nodata=nodata, transform=transform, crs=crs, rpc=rpc, tags=tags,
+                compress=None, blocksize=blocksize,
+            )
+            with rasterio.Env(GDAL_PAM_ENABLED="NO"):
+                rasterio.shutil.copy(src, tmp, driver="COG", **opts)
+        finally:
+            _remove(src)
+    return final
+
+
+# --------------------------------------------------------------------------- resumable stores
+@dataclass(frozen=True)
+class ChunkStore:
+    """Handle on a resumable zarr store filled block by block.
+
+    Small and picklable (paths and ints only): pass it to dask tasks, which
+    call :meth:`write_block` for their own block. Blocks are the zarr chunks
+    along ``(y, x)``; leading dims (e.g. ``band``) are whole in every block.
+
+    Attributes
+    ----------
+    path : str
+        Final store path; the store lives at ``path + ".partial"`` until
+        :meth:`finalize`.
+    variables : tuple of str
+        Data variables, all of shape ``shape``.
+    shape : tuple of int
+        Full shape, last two dims ``(y, x)``.
+    chunk : (int, int)
+        Block edge along ``y`` and ``x``, cells.
+    """
+
+    path: str
+    variables: tuple[str, ...]
+    shape: tuple[int, ...]
+    chunk: tuple[int, int]
+
+    @property
+    def partial_path(self) -> Path:
+        return Path(self.path + ".partial")
+
+    @property
+    def live_path(self) -> Path:
+        """Where the store is now: the partial path, or the final one once finalized."""
+        return self.partial_path if self.partial_path.exists() else Path(self.path)
+
+    @property
+    def numblocks(self) -> tuple[int, int]:
+        return (-(-self.shape[-2] // self.chunk[0]), -(-self.shape[-1] // self.chunk[1]))
+
+    def block_window(self, i: int, j: int) -> tuple[int, int, int, int]:
+        """Half-open ``(row0, row1, col0, col1)`` of block ``(i, j)``."""
+        nby, nbx = self.numblocks
+        if not (0 <= i < nby and 0 <= j < nbx):
+            raise GridError(f"{self.path}: block ({i}, {j}) outside the {nby}x{nbx} block layout")
+        cy, cx = self.chunk
+        return (i * cy, min((i + 1) * cy, self.shape[-2]), j * cx, min((j + 1) * cx, self.shape[-1]))
+
+    def done(self) -> np.ndarray:
+        """Boolean ``numblocks`` array: which blocks are written."""
+        d = _read_progress(self.live_path)
+        if d is None:
+            raise InputFileError(f"{self.path}: not a resumable store (no {_PROGRESS}/done)")
+        return d
+
+    def pending(self) -> list[tuple[int, int]]:
+        """Blocks still to write, row-major."""
+        return [tuple(int(v) for v in ij) for ij in np.argwhere(~self.done())]
+
+    @property
+    def is_complete(self) -> bool:
+        return bool(self.done().all())
+
+    def write_block(self, i: int, j: int, values) -> None:
+        """Write block ``(i, j)`` of every variable, then mark it done.
+
+        Parameters
+        ----------
+        i, j : int
+            Block index.
+        values : array or mapping name -> array
+            Shape ``shape[:-2] + (row1-row0, col1-col0)``; an array when the
+            store has one variable.
+        """
+        import zarr
+
+        if not isinstance(values, Mapping):
+            if len(self.variables) != 1:
+                raise ValueError(f"{self.path}: store has variables {self.variables}; pass a dict")
+            values = {self.variables[0]: values}
+        r0, r1, c0, c1 = self.block_window(i, j)
+        where = str(self.live_path)
+        for name in self.variables:
+            if name not in values:
+                raise ValueError(f"{self.path}: block ({i}, {j}) lacks variable {name!r}")
+            v = np.asarray(values[name])
+            expect = tuple(self.shape[:-2]) + (r1 - r0, c1 - c0)
+            if v.shape != expect:
+                raise ValueError(f"{self.path}: block ({i}, {j}) of {name!r} has shape {v.shape}, expected {expect}")
+            arr = zarr.open_array(store=where, path=name, mode="r+")
+            arr[(Ellipsis, slice(r0, r1), slice(c0, c1))] = v.astype(arr.dtype, copy=False)
+        zarr.open_array(store=where, path=f"{_PROGRESS}/done", mode="r+")[i, j] = 1
+
+    def finalize(self) -> Path:
+        """Rename the complete store onto its final path (atomic).
+
+        Raises
+        ------
+        TiledsmError
+            Blocks are still pending.
+        """
+        final = Path(self.path)
+        if not self.partial_path.exists():
+            if final.exists():
+                return final
+            raise InputFileError(f"{self.path}: store vanished (neither it nor {self.partial_path} exists)")
+        n = int((~self.done()).sum())
+        if n:
+            raise TiledsmError(f"{self.path}: cannot finalize, {n} blocks still pending")
+        _commit(self.partial_path, final)
+        return final
+
+    def open(self, allow_incomplete: bool = True):
+        """The store as xarray (see :func:`open_product`)."""
+        return open_product(self.live_path, allow_incomplete=allow_incomplete)
+
+
+def _layout(ds_attrs: Mapping) -> dict | None:
+    raw = ds_attrs.get(_STORE_ATTR)
+    return json.loads(raw) if isinstance(raw, str) else raw
+
+
+def create_store(
+    path: str | os.PathLike,
+    template,
+    variables: Mapping[str, str] | Sequence[str] = ("data",),
+    *,
+    fill_value: float = float("nan"),
+    attrs: Mapping | None = None,
+    variable_attrs: Mapping[str, Mapping] | None = None,
+    overwrite: bool = False,
+) -> ChunkStore:
+    """Create (or reopen for resume) a resumable chunked zarr v3 store.
+
+    Parameters
+    ----------
+    path : path-like
+        Final store path (``*.zarr``); the store is built at
+        ``path + ".partial"`` until :meth:`ChunkStore.finalize`.
+    template : GroundGrid or DataArray
+        The grid: a :class:`~tiledsm.geometry.grid.GroundGrid` (dims
+        ``(y, x)``, chunks ``grid.chunk``, CRS written), or a dask-backed
+        DataArray whose dims end with ``(y, x)`` (its coords, CRS and
+        ``y``/``x`` chunking are used; leading dims are one chunk).
+    variables : sequence of names or mapping name -> dtype
+        Data variables (default one ``float32`` variable ``"data"``).
+    fill_value : float
+        Value of never-written cells of float variables (integer variables
+        use 0).
+    attrs : mapping, optional
+        Dataset attributes (provenance, recipe...).
+    variable_attrs : mapping name -> mapping, optional
+        Attributes of each variable (units...).
+    overwrite : bool
+        Start afresh even when a finished or partial store exists.
+
+    Returns
+    -------
+    ChunkStore
+        When a finished store exists at ``path`` (and not ``overwrite``) it
+        is returned as is (all blocks done). When a compatible partial store
+        exists, it is reused: its finished blocks are kept (resume). An
+        incompatible partial store (other shape, chunks, variables or dtypes)
+        is discarded.
+    """
+    import dask.array as dsa
+    import zarr
+
+    from tiledsm.geometry.grid import GroundGrid
+
+    final = Path(path)
+    if isinstance(variables, Mapping):
+        var_dtypes = {str(k): np.dtype(v).name for k, v in variables.items()}
+    else:
+        var_dtypes = {str(k): "float32" for k in variables}
+    if not var_dtypes:
+        raise ValueError(f"{final}: create_store needs at least one variable")
+    if isinstance(template, GroundGrid):
+        dims, shape = ("y", "x"), template.shape
+        chunk = (template.chunk, template.chunk)
+        coords = template.coords()
+        crs, transform = template.crs, template.transform
+    elif isinstance(template, xr.DataArray):
+        dims, shape = template.dims, tuple(template.shape)
+        if dims[-2:] != ("y", "x"):
+            raise GridError(f"{final}: template dims must end with (y, x), got {dims}")
+        if template.chunks is None:
+            raise GridError(f"{final}: template DataArray must be dask-backed (its chunks are the store's blocks)")
+        cy, cx = template.chunks[-2], template.chunks[-1]
+        chunk = (int(cy[0]), int(cx[0]))
+        if any(c != chunk[0] for c in cy[:-1]) or any(c != chunk[1] for c in cx[:-1]):
+            raise GridError(f"{final}: template chunks must be regular along y and x, got {cy}, {cx}")
+        coords = {k: v for k, v in template.coords.items() if k != "spatial_ref"}
+        crs = template.rio.crs
+        transform = template.rio.transform() if "x" in template.coords and "y" in template.coords else None
+    else:
+        raise TypeError(f"create_store: template must be a GroundGrid or DataArray, got {type(template).__name__}")
+    layout = {
+        "shape": list(map(int, shape)),
+        "dims": list(dims),
+        "chunk": list(chunk),
+        "variables": var_dtypes,
+    }
+    store = ChunkStore(str(final), tuple(var_dtypes), tuple(int(s) for s in shape), (int(chunk[0]), int(chunk[1])))
+    partial = store.partial_path
+
+    def compatible(p: Path) -> bool:
+        try:
+            with xr.open_zarr(p, consolidated=False, zarr_format=3) as ds:
+                return _layout(ds.attrs) == layout and _read_progress(p) is not None
+        except Exception:  # any unreadable store is simply not reusable
+            return False
+
+    if overwrite:
+        _remove(partial)
+    elif final.exists():
+        if compatible(final):
+            return store
+        raise TiledsmError(f"{final}: exists with another layout; pass overwrite=True to replace it")
+    if partial.exists():
+        if compatible(partial):
+            return store
+        _remove(partial)
+
+    full_chunks = tuple(-1 for _ in dims[:-2]) + chunk
+    data_vars = {
+        name: (
+            dims,
+            dsa.full(shape, fill_value if np.dtype(dt).kind == "f" else 0, dtype=dt, chunks=full_chunks),
+            dict((variable_attrs or {}).get(name, {})),
+        )
+        for name, dt in var_dtypes.items()
+    }
+    ds = xr.Dataset(data_vars, coords=coords, attrs={**(attrs or {}), _STORE_ATTR: json.dumps(layout)})
+    if crs is not None:
+        ds = ds.rio.write_crs(crs)
+        if transform is not None:
+            ds = ds.rio.write_transform(transform)
+    with atomic_path(partial) as tmp:
+        ds.to_zarr(tmp, mode="w-", zarr_format=3, consolidated=False, compute=False)
+        grp = zarr.open_group(str(tmp), mode="a")
+        prog = grp.require_group(_PROGRESS)
+        prog.create_array("done", shape=store.numblocks, chunks=(1, 1), dtype="uint8", fill_value=0)
+    return store
+
+
+def _write_block_task(store: ChunkStore, i: int, j: int, names: tuple[str, ...], *blocks) -> bool:
+    store.write_block(i, j, dict(zip(names, blocks)))
+    return True
+
+
+def write_blocks(data, store: ChunkStore, *, finalize: bool = True, compute: Callable | None = None) -> int:
+    """Compute the pending blocks of ``data`` and write each one from its
+    own dask task (the client only receives one boolean per block).
+
+    Parameters
+    ----------
+    data : dask array, DataArray, or mapping name -> either
+        Chunked exactly like the store along ``(y, x)``; leading dims one
+        chunk. Blocks already marked done are culled from the graph, so
+        their inputs are not computed either.
+    store : ChunkStore
+    finalize : bool
+        Rename the store to its final path when every block is written.
+    compute : callable, optional
+        ``compute(delayed)`` runs the writes (progress bar, client...); it
+        receives one ``dask.delayed`` object. Default: ``dask.compute``.
+
+    Returns
+    -------
+    int
+        Number of blocks written by this call.
+    """
+    import dask.array as dsa
+
+    if not isinstance(data, Mapping):
+        if len(store.variables) != 1:
+            raise ValueError(f"{store.path}: store has variables {store.variables}; pass a dict")
+        data = {store.variables[0]: data}
+    names = tuple(store.variables)
+    arrays = []
+    for name in names:
+        if name not in data:
+            raise ValueError(f"{store.path}: no data given for variable {name!r}")
+        a = data[name]
+        a = a.data if isinstance(a, xr.DataArray) else a
+        if not isinstance(a, dsa.Array):
+            a = dsa.from_array(np.asarray(a), chunks=(-1,) * (np.ndim(a) - 2) + store.chunk)
+        if tuple(a.shape) != store.shape:
+            raise GridError(f"{store.path}: {name!r} has shape {a.shape}, store expects {store.shape}")
+        if a.ndim > 2:
+            a = a.rechunk((-1,) * (a.ndim - 2) + a.chunks[-2:])
+        expect = tuple(
+            tuple(min(c, n - k * c) for k in range(-(-n // c))) for n, c in zip(store.shape[-2:], store.chunk)
+        )
+        if tuple(a.chunks[-2:]) != expect:
+            raise GridError(
+                f"{store.path}: {name!r} chunks {a.chunks[-2:]} differ from the store's blocks {store.chunk}; "
+                "rechunk the data (a block must map to exactly one zarr chunk)"
+            )
+        arrays.append(a)
+    # no per-array graph optimisation: work the variables share (one kernel
+    # producing height and confidence) keeps one key and runs once per block
+    arrays = [a.to_delayed(optimize_graph=False).reshape(a.numblocks[-2:]) for a in arrays]
+    pending = store.pending()
+    tasks = [
+        dask.delayed(_write_block_task, pure=False)(store, i, j, names, *(d[i, j] for d in arrays))
+        for i, j in pending
+    ]
+    if tasks:
+        (compute or dask.compute)(dask.delayed(len, pure=False)(tasks))
+    if finalize:
+        store.finalize()
+    return len(tasks)
+
+
+def write_resumable(
+    obj: xr.DataArray | xr.Dataset,
+    path: str | os.PathLike,
+    *,
+    compute: Callable | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Resumable counterpart of :func:`write_zarr`.
+
+    Creates (or reopens) the store with :func:`create_store` from ``obj``'s
+    grid, variables, dtypes and attrs, writes the pending blocks with
+    :func:`write_blocks` and finalizes it. Re-running after a crash
+    recomputes only the blocks that were not written; a finished store is
+    left as is (pass ``overwrite=True`` to recompute). :func:`open_product`
+    reads the result back like a :func:`write_zarr` store (a DataArray in,
+    a DataArray out).
+
+    Parameters
+    ----------
+    obj : DataArray or Dataset
+        Dask-backed; all variables share dims ending with ``(y, x)`` and one
+        regular chunking along them (the store's blocks).
+    path : path-like
+    compute : callable, optional
+        See :func:`write_blocks`.
+    overwrite : bool
+        Discard existing (finished or partial) stores.
+    """
+    ds = _as_dataset(obj)
+    variables = list(ds.data_vars)
+    if not variables:
+        raise ValueError(f"{path}: nothing to write (no data variables)")
+    first = ds[variables[0]]
+    for name in variables[1:]:
+        if ds[name].dims != first.dims or ds[name].shape != first.shape:
+            raise GridError(
+                f"{path}: variable {name!r} has dims {ds[name].dims} / shape {ds[name].shape}, "
+                f"expected those of {variables[0]!r}: {first.dims} / {first.shape}"
+            )
+    if first.chunks is None:
+        first = first.chunk({"y": 1024, "x": 1024})
+    store = create_store(
+        path,
+        first,
+        {n: ds[n].dtype for n in variables},
+        attrs=ds.attrs,
+        variable_attrs={n: ds[n].attrs for n in variables},
+        overwrite=overwrite,
+    )
+    chunks = dict(zip(first.dims[-2:], first.chunks[-2:]))
+    write_blocks({n: ds[n].chunk(chunks) for n in variables}, store, compute=compute)
+    return Path(path)
