@@ -1,0 +1,200 @@
+"""Recipe runners: one function per ``pipeline`` name, in a registry.
+
+A runner takes a validated recipe and a run folder and leaves there the
+stores, the products, ``recipe.resolved.yaml``, ``metrics.json`` and
+``run.log``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import xarray as xr
+
+from tiledsm.cluster import ClusterConfig, compute_context, compute_with_progress
+from tiledsm.recipes import DSMRecipe, dump_resolved
+
+log = logging.getLogger("tiledsm")
+
+__all__ = ["RUNNERS", "run_recipe", "write_dsm_products", "dsm_metrics"]
+
+RUNNERS: dict[str, Callable] = {}
+
+
+def _runner(name: str):
+    def deco(fn):
+        if name in RUNNERS:
+            raise ValueError(f"pipeline {name!r} registered twice")
+        RUNNERS[name] = fn
+        return fn
+
+    return deco
+
+
+def _setup_log(out: Path) -> logging.Handler:
+    out.mkdir(parents=True, exist_ok=True)
+    handler = logging.FileHandler(out / "run.log")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    logging.getLogger("tiledsm").addHandler(handler)
+    logging.getLogger("tiledsm").setLevel(logging.INFO)
+    return handler
+
+
+def run_recipe(recipe, out_dir: str | Path, cluster: ClusterConfig | None = None) -> dict:
+    """Run a validated recipe into ``out_dir``; returns its metrics."""
+    out = Path(out_dir)
+    handler = _setup_log(out)
+    try:
+        resolved = out / "recipe.resolved.yaml"
+        previous = resolved.read_text() if resolved.exists() else None
+        dump_resolved(recipe, resolved)
+        # Finished chunks of an earlier run are kept only if it ran the same recipe.
+        overwrite = previous is not None and previous != resolved.read_text()
+        log.info("running pipeline %s into %s (resume: %s)", recipe.pipeline, out, not overwrite)
+        return RUNNERS[recipe.pipeline](recipe, out, cluster, overwrite=overwrite)
+    finally:
+        logging.getLogger("tiledsm").removeHandler(handler)
+        handler.close()
+
+
+def dsm_metrics(height: xr.DataArray, reference: xr.DataArray, mask: xr.DataArray | None = None) -> dict:
+    """Error statistics of a DSM against a reference on the same grid.
+
+    ``mask`` (True = evaluate) restricts the cells, e.g. to visible ground.
+    Completeness is the fraction of evaluated cells that have a height.
+    """
+    from tiledsm.compare.stats import difference_statistics
+
+    ref = reference.values.astype(np.float64)
+    h = height.values.astype(np.float64)
+    sel = np.isfinite(ref)
+    if mask is not None:
+        sel &= np.asarray(mask, bool)
+    stats = difference_statistics(h[sel] - ref[sel], reference=ref[sel])
+    return stats
+
+
+def _reference_on_grid(path: str | Path, like: xr.DataArray) -> xr.DataArray:
+    """A reference raster resampled (bilinear) onto the grid of ``like``."""
+    import rioxarray  # noqa: F401  (registers .rio)
+    from rasterio.enums import Resampling
+
+    ref = xr.open_dataarray(path, engine="rasterio", mask_and_scale=True).squeeze("band", drop=True)
+    if ref.rio.crs == like.rio.crs and ref.shape == like.shape and np.allclose(ref.rio.transform(), like.rio.transform()):
+        return ref.assign_coords(x=like.x, y=like.y)
+    return ref.rio.reproject_match(like, resampling=Resampling.bilinear)
+
+
+def write_dsm_products(
+    ds: xr.Dataset,
+    out: Path,
+    *,
+    cluster: ClusterConfig,
+    cog: bool = True,
+    quicklook: bool = True,
+    overwrite: bool = False,
+) -> dict:
+    """Compute the lazy DSM into ``out/dsm.zarr``, then COG and PNG.
+
+    The store is resumable: chunks finished by an interrupted run are kept
+    and only the others are computed (``overwrite`` discards them).
+
+    Returns timings.
+    """
+    from tiledsm.io import write_cog, write_resumable
+    from tiledsm.quicklook import quicklook as make_quicklook
+
+    timings = {}
+    t0 = time.perf_counter()
+    with compute_context(cluster) as client:
+        write_resumable(
+            ds,
+            out / "dsm.zarr",
+            compute=lambda delayed: compute_with_progress(delayed, config=cluster, client=client),
+            overwrite=overwrite,
+        )
+    timings["match_s"] = time.perf_counter() - t0
+    from tiledsm.io import open_product
+
+    stored = open_product(out / "dsm.zarr")
+    t1 = time.perf_counter()
+    if cog:
+        write_cog(stored["height"], out / "dsm.tif")
+    if quicklook:
+        make_quicklook(stored["height"], out / "dsm.png", kind="height", title="DSM (m, ellipsoidal)")
+    timings["export_s"] = time.perf_counter() - t1
+    return timings
+
+
+@_runner("dsm")
+def run_dsm(recipe: DSMRecipe, out: Path, cluster: ClusterConfig | None = None, overwrite: bool = False) -> dict:
+    """Views (or a synthetic scene) -> DSM products and metrics."""
+    from tiledsm.dsm import DSMParams, dsm_from_pair
+    from tiledsm.geometry.grid import GroundGrid
+    from tiledsm.match.sgvll import SGVLLParams
+
+    cluster = cluster or ClusterConfig(scheduler=recipe.cluster.scheduler, workers=recipe.cluster.workers)
+    t_start = time.perf_counter()
+    inp = recipe.input
+    truth_mask = None
+    if inp.synth is not None:
+        from tiledsm.synth import make_scene
+
+        sy = inp.synth
+        log.info("making synthetic scene %s", sy.model_dump())
+        scene = make_scene(out / "scene", size=sy.size, gsd=sy.gsd, bh=sy.bh, seed=sy.seed, views=sy.views, event=False)
+        images = [str(p) for p in scene.views]
+        rpcs = None
+        reference = str(scene.truth_dsm)
+        truth_mask = getattr(scene, "visible_mask", None)
+    else:
+        images, rpcs, reference = inp.images, inp.rpcs, inp.reference
+    g = recipe.grid
+    grid = None
+    if g.like:
+        grid = GroundGrid.like(g.like, chunk=g.chunk)
+    elif g.bounds:
+        grid = GroundGrid.from_bounds(g.crs, g.bounds, g.resolution, chunk=g.chunk)
+    m = recipe.match
+    params = DSMParams(
+        resolution=g.resolution,
+        chunk=g.chunk,
+        levels=m.levels,
+        height_range=m.height_range,
+        height_margin=m.height_margin,
+        relative_correction=m.relative_correction,
+        match=SGVLLParams(**m.params),
+    )
+    ds, report = dsm_from_pair(*images, rpcs=rpcs, grid=grid, params=params)
+    timings = write_dsm_products(
+        ds, out, cluster=cluster, cog=recipe.output.cog, quicklook=recipe.output.quicklook, overwrite=overwrite
+    )
+    metrics: dict = {"pipeline": "dsm", "report": report, "timings": timings}
+    from tiledsm.io import open_product
+
+    height = open_product(out / "dsm.zarr")["height"]
+    metrics["completeness"] = float(np.isfinite(height.values).mean())
+    if reference:
+        ref = _reference_on_grid(reference, height)
+        metrics["reference"] = str(reference)
+        metrics["vs_reference"] = dsm_metrics(height, ref)
+        if truth_mask is not None:
+            mask = _reference_on_grid(truth_mask, height)
+            metrics["vs_reference_visible"] = dsm_metrics(height, ref, mask=np.asarray(mask.values > 0.5))
+    metrics["timings"]["total_s"] = time.perf_counter() - t_start
+    metrics["output_mpx_per_s"] = height.size / 1e6 / max(timings["match_s"], 1e-9)
+    _write_json(metrics, out / "metrics.json")
+    log.info("metrics: %s", json.dumps(metrics))
+    return metrics
+
+
+def _write_json(obj: dict, path: Path) -> None:
+    from tiledsm.io import atomic_path
+
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(json.dumps(obj, indent=2, default=float))
