@@ -19,6 +19,7 @@ from tiledsm.errors import TiledsmError
 #: command modules, in the order their commands appear in ``--help``
 COMMAND_MODULES = (
     "tiledsm.cli.info",
+    "tiledsm.cli.synth",
     "tiledsm.cli.run",
     "tiledsm.cli.dsm",
 )

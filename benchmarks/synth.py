@@ -1,0 +1,65 @@
+"""Benchmark ``make_scene``: wall time and peak memory per scene size.
+
+Each size runs in a fresh subprocess (so its peak RSS is its own):
+2 views, B/H 0.4, GSD 0.5 m, 512-pixel tiles. Prints a table and writes
+``benchmarks/results/synth.json``.
+
+    python benchmarks/synth.py [--sizes 1024 4096 16384] [--workers 2] [--out DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+CHILD = r"""
+import json, resource, sys, time
+from tiledsm.synth import make_scene
+size, workers, out = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
+t = time.perf_counter()
+info = make_scene(out, size=size, gsd=0.5, bh=0.4, seed=0, views=2, chunk=512, workers=workers)
+wall = time.perf_counter() - t
+print(json.dumps({"size": size, "wall_s": wall, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  "bh_measured": info.bh, "rpc_fit_max_px": max(info.fit_residual_px), "timings_s": info.timings_s}))
+"""
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[1024, 4096])
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--out", default=None, help="scratch folder for the scenes (default: a temporary one)")
+    args = ap.parse_args(argv)
+    rows = []
+    for size in args.sizes:
+        scratch = Path(args.out or tempfile.mkdtemp(prefix="tiledsm_synth_bench_")) / f"scene_{size}"
+        res = subprocess.run([sys.executable, "-c", CHILD, str(size), str(args.workers), str(scratch)],
+                             capture_output=True, text=True, check=True)
+        row = json.loads(res.stdout.strip().splitlines()[-1])
+        row["mpix_per_s"] = 2 * size * size / 1e6 / row["timings_s"]["render_and_write"]
+        row["bytes_written"] = sum(p.stat().st_size for p in scratch.glob("*"))
+        rows.append(row)
+        if args.out is None:
+            shutil.rmtree(scratch.parent, ignore_errors=True)
+        print(f"{size:>6d} px  {row['wall_s']:8.1f} s  peak RSS {row['peak_rss_mb']:8.0f} MB  "
+              f"render {row['mpix_per_s']:.2f} Mpx/s  B/H {row['bh_measured']:.4f}  "
+              f"RPC fit {row['rpc_fit_max_px']:.1e} px", flush=True)
+    doc = {"benchmark": "synth.make_scene (2 views, gsd 0.5, bh 0.4, chunk 512)", "workers": args.workers,
+           "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},
+           "results": rows}
+    out = Path(__file__).resolve().parent / "results" / "synth.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(doc, indent=2))
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
