@@ -1,0 +1,99 @@
+"""Semi-global aggregation against a direct (slow) implementation of the
+recursion in absolute labels, WTA and speckle filter against oracles."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from tiledsm.match.sgm import aggregate, remove_speckles, winner_take_all
+
+DIRS = [(0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1)]
+
+
+def _reference(cost, base, P1, P2, guide=None, gamma=1.0):
+    ny, nx, nd = cost.shape
+    S = np.zeros(cost.shape)
+    for dy, dx in DIRS:
+        L = np.zeros(cost.shape)
+        ys = range(ny) if dy >= 0 else range(ny - 1, -1, -1)
+        xs = list(range(nx)) if dx >= 0 else list(range(nx - 1, -1, -1))
+        for i in ys:
+            for j in xs:
+                pi, pj = i - dy, j - dx
+                if not (0 <= pi < ny and 0 <= pj < nx):
+                    L[i, j] = cost[i, j]
+                    continue
+                p2 = P2
+                if guide is not None:
+                    p2 = max(P1, P2 / (1 + abs(guide[i, j] - guide[pi, pj]) / gamma))
+                prev = L[pi, pj]
+                m = prev.min()
+                for k in range(nd):
+                    lab = base[i, j] + k
+                    dl = np.abs(base[pi, pj] + np.arange(nd) - lab)
+                    pen = np.where(dl == 0, 0.0, np.where(dl == 1, P1, p2))
+                    L[i, j, k] = cost[i, j, k] + min((prev + pen).min(), m + p2) - m
+        S += L
+    return S
+
+
+@pytest.mark.parametrize("with_base", [False, True])
+def test_aggregate_matches_reference(with_base):
+    rng = np.random.default_rng(3)
+    cost = rng.random((6, 8, 5)).astype(np.float32)
+    base = rng.integers(-2, 3, (6, 8)) if with_base else np.zeros((6, 8), int)
+    S = aggregate(cost, 0.1, 0.7, base=base)
+    assert np.abs(S - _reference(cost, base, 0.1, 0.7)).max() < 1e-5
+
+
+def test_aggregate_adaptive_p2_and_nan():
+    rng = np.random.default_rng(4)
+    cost = rng.random((5, 7, 4)).astype(np.float32)
+    guide = rng.normal(0, 20, (5, 7)).astype(np.float32)
+    S = aggregate(cost, 0.1, 0.9, guide=guide, p2_gamma=10.0)
+    ref = _reference(cost, np.zeros((5, 7), int), 0.1, 0.9, guide, 10.0)
+    assert np.abs(S - ref).max() < 1e-5
+    cost[2, 3, :] = np.nan
+    S = aggregate(cost, 0.1, 0.9, invalid_cost=1.0)
+    filled = np.where(np.isnan(cost), 1.0, cost)
+    assert np.abs(S - _reference(filled, np.zeros((5, 7), int), 0.1, 0.9)).max() < 1e-5
+
+
+def test_sgm_regularises_noisy_plane():
+    # a constant true label under strong noise: aggregation recovers it where raw WTA fails
+    rng = np.random.default_rng(5)
+    nd = 9
+    cost = (np.abs(np.arange(nd) - 4)[None, None, :] * 0.15 + rng.random((40, 40, nd)) * 0.6).astype(np.float32)
+    raw = np.argmin(cost, axis=2)[4:-4, 4:-4]
+    idx, _, _, _ = winner_take_all(aggregate(cost, 0.5, 2.0), cost)
+    assert np.mean(raw == 4) < 0.6
+    assert np.mean(np.abs(idx[4:-4, 4:-4] - 4) < 0.5) > 0.97
+
+
+def test_wta_parabola_exact_on_quadratic_and_nvalid():
+    x0 = np.array([[2.3, 5.75], [1.5, 3.0]])
+    k = np.arange(8)
+    S = ((k[None, None, :] - x0[..., None]) ** 2).astype(np.float32)
+    idx, smin, ratio, cbest = winner_take_all(S)
+    assert np.allclose(idx, x0, atol=1e-4)
+    assert np.all(ratio < 1)
+    # candidates beyond nvalid are ignored
+    idx2, *_ = winner_take_all(S, nvalid=np.array([[3, 8], [8, 8]]))
+    assert idx2[0, 0] == pytest.approx(2.0)
+
+
+def test_remove_speckles_matches_connected_components():
+    rng = np.random.default_rng(6)
+    labels = rng.integers(0, 4, (30, 30)).astype(np.float32)
+    labels = ndimage.median_filter(labels, 3).astype(np.float32)
+    labels[3, 3] = 50.0  # an isolated cell
+    out = remove_speckles(labels, 0.0, 6)
+    expected = labels.copy()
+    for v in np.unique(labels):
+        lab, n = ndimage.label(labels == v)  # 4-connectivity
+        sizes = ndimage.sum(np.ones_like(labels), lab, index=np.arange(1, n + 1))
+        for c, sz in enumerate(sizes, start=1):
+            if sz < 6:
+                expected[lab == c] = np.nan
+    assert np.isnan(out[3, 3])
+    assert np.array_equal(np.isnan(out), np.isnan(expected))

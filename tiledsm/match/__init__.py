@@ -1,0 +1,32 @@
+"""Dense matching kernels: costs, semi-global aggregation, object-space
+SGVLL matching, image-space disparity, triangulation and tie points.
+
+Everything here works on in-memory numpy blocks; the dask orchestration
+lives in :mod:`tiledsm.dsm`.
+"""
+
+from tiledsm.match.cost import mean_zncc_cost, zncc_cost
+from tiledsm.match.sgm import aggregate, remove_speckles, winner_take_all
+from tiledsm.match.sgvll import SGVLLParams, height_step, match_block, match_pyramid, refine_search
+from tiledsm.match.stereo import StereoParams, disparity
+from tiledsm.match.tiepoints import height_range_from_tiepoints, match_tiepoints, relative_correction
+from tiledsm.match.triangulate import triangulate
+
+__all__ = [
+    "zncc_cost",
+    "mean_zncc_cost",
+    "aggregate",
+    "winner_take_all",
+    "remove_speckles",
+    "SGVLLParams",
+    "height_step",
+    "match_block",
+    "match_pyramid",
+    "refine_search",
+    "StereoParams",
+    "disparity",
+    "triangulate",
+    "match_tiepoints",
+    "height_range_from_tiepoints",
+    "relative_correction",
+]

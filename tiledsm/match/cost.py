@@ -1,0 +1,181 @@
+"""Matching costs between images sampled on a common grid.
+
+The object-space matcher (:mod:`tiledsm.match.sgvll`) samples every view at
+the projections of the same ground cells for one candidate height, which
+gives co-registered 2-D arrays; the image-space matcher
+(:mod:`tiledsm.match.stereo`) shifts the right image by a candidate
+disparity. In both cases the cost of a candidate is computed here from two
+such arrays, cell by cell, over a square window.
+
+Conventions
+-----------
+- Inputs are ``float32`` arrays of identical shape ``(ny, nx)``; NaN marks
+  nodata (outside the image, masked pixels).
+- ``cost = 1 - ZNCC``, in ``[0, 2]`` (0 = perfect correlation). A cell whose
+  window holds any NaN, or whose window is flat in either image (variance
+  below ``eps`` times the squared mean intensity scale), gets NaN: an
+  *invalid* cost, which the aggregation replaces by a neutral value.
+- The window is ``(2 * half + 1)`` cells square, centred on the cell; cells
+  closer than ``half`` to the array border are invalid (NaN).
+
+All kernels are numba ``nogil`` functions, safe to run in threads.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+__all__ = ["zncc_cost", "mean_zncc_cost", "COSTS"]
+
+
+@nb.njit(nogil=True, cache=True)
+def _integrals(a, b):
+    """Summed-area tables (float64) of a, b, a², b², ab and of invalid counts."""
+    ny, nx = a.shape
+    sa = np.zeros((ny + 1, nx + 1))
+    sb = np.zeros((ny + 1, nx + 1))
+    saa = np.zeros((ny + 1, nx + 1))
+    sbb = np.zeros((ny + 1, nx + 1))
+    sab = np.zeros((ny + 1, nx + 1))
+    sbad = np.zeros((ny + 1, nx + 1), dtype=np.int32)
+    for i in range(ny):
+        ra = 0.0
+        rb = 0.0
+        raa = 0.0
+        rbb = 0.0
+        rab = 0.0
+        rbad = 0
+        for j in range(nx):
+            x = a[i, j]
+            y = b[i, j]
+            if np.isfinite(x) and np.isfinite(y):
+                ra += x
+                rb += y
+                raa += x * x
+                rbb += y * y
+                rab += x * y
+            else:
+                rbad += 1
+            sa[i + 1, j + 1] = sa[i, j + 1] + ra
+            sb[i + 1, j + 1] = sb[i, j + 1] + rb
+            saa[i + 1, j + 1] = saa[i, j + 1] + raa
+            sbb[i + 1, j + 1] = sbb[i, j + 1] + rbb
+            sab[i + 1, j + 1] = sab[i, j + 1] + rab
+            sbad[i + 1, j + 1] = sbad[i, j + 1] + rbad
+    return sa, sb, saa, sbb, sab, sbad
+
+
+@nb.njit(nogil=True, cache=True)
+def _zncc_kernel(a, b, half, eps, out):
+    """Write 1 - ZNCC of windows of a and b into ``out`` (NaN where invalid)."""
+    ny, nx = a.shape
+    sa, sb, saa, sbb, sab, sbad = _integrals(a, b)
+    n = (2 * half + 1) * (2 * half + 1)
+    inv_n = 1.0 / n
+    for i in range(ny):
+        for j in range(nx):
+            out[i, j] = np.nan
+    for i in range(half, ny - half):
+        i0 = i - half
+        i1 = i + half + 1
+        for j in range(half, nx - half):
+            j0 = j - half
+            j1 = j + half + 1
+            if sbad[i1, j1] - sbad[i0, j1] - sbad[i1, j0] + sbad[i0, j0] != 0:
+                continue
+            s_a = sa[i1, j1] - sa[i0, j1] - sa[i1, j0] + sa[i0, j0]
+            s_b = sb[i1, j1] - sb[i0, j1] - sb[i1, j0] + sb[i0, j0]
+            s_aa = saa[i1, j1] - saa[i0, j1] - saa[i1, j0] + saa[i0, j0]
+            s_bb = sbb[i1, j1] - sbb[i0, j1] - sbb[i1, j0] + sbb[i0, j0]
+            s_ab = sab[i1, j1] - sab[i0, j1] - sab[i1, j0] + sab[i0, j0]
+            va = s_aa - s_a * s_a * inv_n
+            vb = s_bb - s_b * s_b * inv_n
+            # flat windows carry no information
+            if va <= eps * (1.0 + s_aa) or vb <= eps * (1.0 + s_bb):
+                continue
+            c = (s_ab - s_a * s_b * inv_n) / np.sqrt(va * vb)
+            if c > 1.0:
+                c = 1.0
+            elif c < -1.0:
+                c = -1.0
+            out[i, j] = 1.0 - c
+
+
+def zncc_cost(a: np.ndarray, b: np.ndarray, half: int, eps: float = 1e-6, out: np.ndarray | None = None) -> np.ndarray:
+    """Windowed ``1 - ZNCC`` between two co-registered images.
+
+    Parameters
+    ----------
+    a, b : numpy.ndarray
+        ``(ny, nx)`` arrays (converted to float32), NaN = nodata.
+    half : int
+        Half window size: the window is ``2*half+1`` cells square.
+    eps : float
+        Relative variance floor: a window whose variance is below
+        ``eps * (1 + sum of squares)`` is flat and gives NaN.
+    out : numpy.ndarray, optional
+        ``(ny, nx)`` float32 array to write into (may be a strided view, for
+        instance ``volume[:, :, k]``).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(ny, nx)`` float32 cost in ``[0, 2]``; NaN where invalid (window
+        touching nodata or the border, or flat).
+    """
+    a = np.asarray(a, np.float32)
+    b = np.asarray(b, np.float32)
+    if a.shape != b.shape or a.ndim != 2:
+        raise ValueError(f"zncc_cost: images must be 2-D and of equal shape, got {a.shape} and {b.shape}")
+    if half < 0:
+        raise ValueError(f"zncc_cost: half window must be >= 0, got {half}")
+    if out is None:
+        out = np.empty(a.shape, np.float32)
+    _zncc_kernel(a, b, int(half), float(eps), out)
+    return out
+
+
+def mean_zncc_cost(samples: list[np.ndarray], half: int, out: np.ndarray | None = None) -> np.ndarray:
+    """Multi-view cost: ``1 - mean ZNCC`` over all view pairs, ignoring
+    invalid pairs (occluded or outside one view).
+
+    Parameters
+    ----------
+    samples : list of numpy.ndarray
+        Two or more co-registered ``(ny, nx)`` float32 arrays (one per view,
+        sampled at the projections of the same ground cells).
+    half : int
+        Half window size, cells.
+    out : numpy.ndarray, optional
+        Destination ``(ny, nx)`` float32 array (may be strided).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(ny, nx)`` float32 in ``[0, 2]``, NaN where no pair is valid.
+    """
+    n = len(samples)
+    if n < 2:
+        raise ValueError(f"mean_zncc_cost: need at least two views, got {n}")
+    if n == 2:
+        return zncc_cost(samples[0], samples[1], half, out=out)
+    total = np.zeros(samples[0].shape, np.float32)
+    count = np.zeros(samples[0].shape, np.float32)
+    tmp = np.empty(samples[0].shape, np.float32)
+    for i in range(n):
+        for j in range(i + 1, n):
+            zncc_cost(samples[i], samples[j], half, out=tmp)
+            ok = np.isfinite(tmp)
+            total[ok] += tmp[ok]
+            count += ok
+    with np.errstate(invalid="ignore", divide="ignore"):
+        res = (total / count).astype(np.float32)
+    if out is None:
+        return res
+    out[...] = res
+    return out
+
+
+#: Registry of two-image costs (name -> callable(a, b, half, out=None)).
+COSTS: dict[str, object] = {"zncc": zncc_cost}

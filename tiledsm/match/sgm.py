@@ -1,0 +1,364 @@
+"""Semi-global aggregation (8 paths) and winner-take-all over a cost volume.
+
+Hirschmüller's semi-global matching, written for a cost volume whose
+candidates may differ from cell to cell.
+
+Candidate indexing (per-cell offsets)
+-------------------------------------
+The volume ``cost`` has shape ``(ny, nx, nd)``. Candidate ``k`` of cell
+``(i, j)`` stands for the *absolute* label ``base[i, j] + k`` on one lattice
+shared by all cells (in object space: the height ``(base + k) * step``; in
+image space with ``base = 0``: the disparity ``d_min + k``). All cells have
+the same number ``nd`` of candidates but their own ``base``; this is how a
+coarse-to-fine search narrows the range around a coarser result cell by
+cell.
+
+Along a path, the transition from neighbour ``q`` (label ``l'``) to cell
+``p`` (label ``l``) costs 0 if ``l == l'``, ``P1`` if ``|l - l'| == 1`` and
+``P2`` otherwise, comparing absolute labels. So
+``L_r(p, k) = C(p, k) + min(L_r(q, k+s), L_r(q, k+s±1) + P1,
+min_k' L_r(q, k') + P2) - min_k' L_r(q, k')`` with ``s = base[p] - base[q]``;
+entries of ``q`` outside ``0..nd-1`` are absent. With ``base = 0``
+everywhere this is the textbook recursion.
+
+Costs that are NaN (invalid) are replaced by ``invalid_cost`` before
+aggregation. Optional adaptive ``P2``: with a guide image ``g``,
+``P2(p, q) = max(P1, P2 / (1 + |g(p) - g(q)| / p2_gamma))`` (smaller
+penalty for jumps across intensity edges).
+
+The aggregated cost ``S`` is the sum of the 8 path costs (directions
+E, W, N, S and the four diagonals).
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+__all__ = ["aggregate", "winner_take_all", "sgm", "remove_speckles"]
+
+_INF = np.float32(3.0e38)
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def _penalty2(P1, P2, guide, use_guide, gamma, i, j, pi, pj):
+    if not use_guide:
+        return P2
+    d = abs(guide[i, j] - guide[pi, pj])
+    if not np.isfinite(d):
+        return P2
+    p = P2 / (1.0 + d / gamma)
+    return p if p > P1 else P1
+
+
+@nb.njit(nogil=True, cache=True)
+def _step(cost, i, j, prev, prev_min, shift, P1, P2, out):
+    """One path update; returns the minimum of ``out``.
+
+    ``prev`` and ``out`` are padded buffers: the ``nd`` path costs live at
+    ``[pad : pad + nd]`` with ``pad = nd + 1`` and +inf around them, so that
+    any ``|shift| <= nd`` reads inside the buffer without bounds checks.
+    """
+    nd = cost.shape[2]
+    pad = nd + 1
+    lim = prev_min + P2
+    best = _INF
+    if shift > nd or shift < -nd:
+        for k in range(nd):
+            o = cost[i, j, k] + P2
+            out[pad + k] = o
+            if o < best:
+                best = o
+        return best
+    o0 = pad + shift
+    for k in range(nd):
+        q = o0 + k
+        m = min(prev[q], min(prev[q - 1], prev[q + 1]) + P1)
+        if lim < m:
+            m = lim
+        o = cost[i, j, k] + m - prev_min
+        out[pad + k] = o
+        if o < best:
+            best = o
+    return best
+
+
+@nb.njit(nogil=True, cache=True)
+def _init(cost, i, j, out):
+    nd = cost.shape[2]
+    pad = nd + 1
+    best = _INF
+    for k in range(nd):
+        o = cost[i, j, k]
+        out[pad + k] = o
+        if o < best:
+            best = o
+    return best
+
+
+@nb.njit(nogil=True, cache=True)
+def _pass(cost, base, P1, P2, guide, use_guide, gamma, S, forward):
+    """Four paths in one sweep (rows top-down if ``forward`` else bottom-up)."""
+    ny, nx, nd = cost.shape
+    pad = nd + 1
+    width = nd + 2 * pad
+    sgn = 1 if forward else -1
+    # padded path buffers of the previous/current row for the three
+    # row-crossing directions (dx = -1, 0, +1 relative to the sweep)
+    prev = np.full((3, nx, width), _INF, np.float32)
+    prev_min = np.empty((3, nx), np.float32)
+    cur = np.full((3, nx, width), _INF, np.float32)
+    cur_min = np.empty((3, nx), np.float32)
+    row = np.full(width, _INF, np.float32)
+    row_new = np.full(width, _INF, np.float32)
+    for t in range(ny):
+        i = t if forward else ny - 1 - t
+        pi = i - sgn
+        # in-row path: left-to-right (forward) or right-to-left (backward)
+        for u in range(nx):
+            j = u if forward else nx - 1 - u
+            if u == 0:
+                rmin = _init(cost, i, j, row)
+            else:
+                pj = j - sgn
+                p2 = _penalty2(P1, P2, guide, use_guide, gamma, i, j, i, pj)
+                rmin = _step(cost, i, j, row, rmin, base[i, j] - base[i, pj], P1, p2, row_new)
+                row, row_new = row_new, row
+            for k in range(nd):
+                S[i, j, k] += row[pad + k]
+        # row-crossing paths: from (pi, j - dx) for dx in (-1, 0, 1)
+        for d in range(3):
+            dx = d - 1
+            for j in range(nx):
+                pj = j - dx
+                if t == 0 or pj < 0 or pj >= nx:
+                    cur_min[d, j] = _init(cost, i, j, cur[d, j])
+                else:
+                    p2 = _penalty2(P1, P2, guide, use_guide, gamma, i, j, pi, pj)
+                    cur_min[d, j] = _step(
+                        cost, i, j, prev[d, pj], prev_min[d, pj], base[i, j] - base[pi, pj], P1, p2, cur[d, j]
+                    )
+                for k in range(nd):
+                    S[i, j, k] += cur[d, j, pad + k]
+        prev, cur = cur, prev
+        prev_min, cur_min = cur_min, prev_min
+
+
+@nb.njit(nogil=True, cache=True)
+def _fill_invalid(cost, value):
+    ny, nx, nd = cost.shape
+    out = np.empty((ny, nx, nd), np.float32)
+    for i in range(ny):
+        for j in range(nx):
+            for k in range(nd):
+                v = cost[i, j, k]
+                out[i, j, k] = v if np.isfinite(v) else value
+    return out
+
+
+def aggregate(
+    cost: np.ndarray,
+    P1: float,
+    P2: float,
+    base: np.ndarray | None = None,
+    guide: np.ndarray | None = None,
+    p2_gamma: float = 10.0,
+    invalid_cost: float = 1.0,
+) -> np.ndarray:
+    """Semi-global aggregation of a cost volume over 8 paths.
+
+    Parameters
+    ----------
+    cost : numpy.ndarray
+        ``(ny, nx, nd)`` matching cost (float32; NaN = invalid).
+    P1, P2 : float
+        Penalties (cost units) for a one-label change and for a larger
+        jump between path neighbours; ``P2 >= P1``.
+    base : numpy.ndarray, optional
+        ``(ny, nx)`` integer absolute label of candidate 0 of each cell (see
+        the module docstring); zeros when omitted.
+    guide : numpy.ndarray, optional
+        ``(ny, nx)`` intensity image for the adaptive ``P2``.
+    p2_gamma : float
+        Intensity difference (guide units) that halves ``P2``.
+    invalid_cost : float
+        Cost given to NaN entries before aggregation.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(ny, nx, nd)`` float32 aggregated cost ``S`` (sum of 8 paths).
+    """
+    cost = np.asarray(cost)
+    if cost.ndim != 3 or min(cost.shape) < 1:
+        raise ValueError(f"aggregate: cost volume must be (ny, nx, nd) and non-empty, got {cost.shape}")
+    if P2 < P1 or P1 < 0:
+        raise ValueError(f"aggregate: need 0 <= P1 <= P2, got P1={P1}, P2={P2}")
+    ny, nx, _ = cost.shape
+    c = _fill_invalid(np.ascontiguousarray(cost, np.float32), np.float32(invalid_cost))
+    b = np.zeros((ny, nx), np.int64) if base is None else np.ascontiguousarray(base, np.int64)
+    if b.shape != (ny, nx):
+        raise ValueError(f"aggregate: base has shape {b.shape}, expected {(ny, nx)}")
+    use_guide = guide is not None
+    g = np.ascontiguousarray(guide, np.float32) if use_guide else np.zeros((1, 1), np.float32)
+    if use_guide and g.shape != (ny, nx):
+        raise ValueError(f"aggregate: guide has shape {g.shape}, expected {(ny, nx)}")
+    S = np.zeros(c.shape, np.float32)
+    p1, p2, gamma = np.float32(P1), np.float32(P2), np.float32(p2_gamma)
+    _pass(c, b, p1, p2, g, use_guide, gamma, S, True)
+    _pass(c, b, p1, p2, g, use_guide, gamma, S, False)
+    return S
+
+
+@nb.njit(nogil=True, cache=True)
+def _wta(S, cost, nvalid, index, smin, ratio, cbest):
+    ny, nx, nd = S.shape
+    for i in range(ny):
+        for j in range(nx):
+            n = nvalid[i, j]
+            if n > nd:
+                n = nd
+            kb = -1
+            best = _INF
+            for k in range(n):
+                v = S[i, j, k]
+                if v < best:
+                    best = v
+                    kb = k
+            if kb < 0:
+                index[i, j] = np.nan
+                smin[i, j] = np.nan
+                ratio[i, j] = np.nan
+                cbest[i, j] = np.nan
+                continue
+            # second best outside the winner's immediate neighbours
+            second = _INF
+            for k in range(n):
+                if k < kb - 1 or k > kb + 1:
+                    v = S[i, j, k]
+                    if v < second:
+                        second = v
+            off = 0.0
+            if 0 < kb < n - 1:
+                a = S[i, j, kb - 1]
+                c = S[i, j, kb + 1]
+                den = a - 2.0 * best + c
+                if den > 0:
+                    off = 0.5 * (a - c) / den
+            index[i, j] = kb + off
+            smin[i, j] = best
+            ratio[i, j] = best / second if second < _INF and second > 0 else 0.0
+            cbest[i, j] = cost[i, j, kb]
+
+
+def winner_take_all(
+    S: np.ndarray, cost: np.ndarray | None = None, nvalid: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Best candidate per cell with sub-step parabola refinement.
+
+    Parameters
+    ----------
+    S : numpy.ndarray
+        ``(ny, nx, nd)`` aggregated cost.
+    cost : numpy.ndarray, optional
+        The raw (unaggregated) cost volume, to report the raw cost of the
+        winner; ``S`` itself when omitted.
+    nvalid : numpy.ndarray, optional
+        ``(ny, nx)`` number of candidates that exist in each cell
+        (candidates ``k >= nvalid`` are ignored); ``nd`` when omitted.
+
+    Returns
+    -------
+    index : numpy.ndarray
+        ``(ny, nx)`` float32 sub-step index of the minimum, in
+        ``[0, nd-1]`` (parabola through the minimum and its two neighbours;
+        no refinement at the ends of the range).
+    smin : numpy.ndarray
+        Minimum aggregated cost.
+    ratio : numpy.ndarray
+        Peak ratio ``S_best / S_second`` (second best taken outside the
+        winner's immediate neighbours) in ``[0, 1]``; close to 1 =
+        ambiguous.
+    cbest : numpy.ndarray
+        Raw cost at the winning (integer) candidate; NaN if invalid.
+    """
+    S = np.ascontiguousarray(S, np.float32)
+    ny, nx, nd = S.shape
+    c = S if cost is None else np.ascontiguousarray(cost, np.float32)
+    nv = np.full((ny, nx), nd, np.int64) if nvalid is None else np.ascontiguousarray(nvalid, np.int64)
+    index = np.empty((ny, nx), np.float32)
+    smin = np.empty((ny, nx), np.float32)
+    ratio = np.empty((ny, nx), np.float32)
+    cbest = np.empty((ny, nx), np.float32)
+    _wta(S, c, nv, index, smin, ratio, cbest)
+    return index, smin, ratio, cbest
+
+
+def sgm(cost: np.ndarray, P1: float, P2: float, base: np.ndarray | None = None, **kwargs):
+    """:func:`aggregate` then :func:`winner_take_all` (same arguments);
+    returns ``(index, smin, ratio, cbest)``."""
+    S = aggregate(cost, P1, P2, base=base, **kwargs)
+    return winner_take_all(S, cost)
+
+
+@nb.njit(nogil=True, cache=True)
+def _speckles(values, max_diff, min_size, out):
+    ny, nx = values.shape
+    label = np.full((ny, nx), -1, np.int64)
+    stack = np.empty(ny * nx, np.int64)
+    members = np.empty(ny * nx, np.int64)
+    di = np.array([-1, 1, 0, 0])
+    dj = np.array([0, 0, -1, 1])
+    cur = 0
+    for i0 in range(ny):
+        for j0 in range(nx):
+            if label[i0, j0] >= 0 or not np.isfinite(values[i0, j0]):
+                continue
+            label[i0, j0] = cur
+            top = 0
+            stack[0] = i0 * nx + j0
+            top = 1
+            n = 0
+            while top > 0:
+                top -= 1
+                p = stack[top]
+                members[n] = p
+                n += 1
+                i = p // nx
+                j = p - i * nx
+                v = values[i, j]
+                for t in range(4):
+                    a = i + di[t]
+                    b = j + dj[t]
+                    if a < 0 or a >= ny or b < 0 or b >= nx or label[a, b] >= 0:
+                        continue
+                    w = values[a, b]
+                    if np.isfinite(w) and abs(w - v) <= max_diff:
+                        label[a, b] = cur
+                        stack[top] = a * nx + b
+                        top += 1
+            if n < min_size:
+                for m in range(n):
+                    p = members[m]
+                    out[p // nx, p - (p // nx) * nx] = np.nan
+            cur += 1
+
+
+def remove_speckles(values: np.ndarray, max_diff: float, min_size: int) -> np.ndarray:
+    """Set small connected components of a height/disparity map to NaN.
+
+    Two 4-neighbours belong to the same component when both are finite and
+    differ by at most ``max_diff`` (same units as ``values``). Components
+    with fewer than ``min_size`` cells are removed (as OpenCV's
+    ``filterSpeckles``, but float and NaN-aware).
+
+    Returns
+    -------
+    numpy.ndarray
+        A float32 copy of ``values`` with the speckles set to NaN.
+    """
+    v = np.ascontiguousarray(values, np.float32)
+    out = v.copy()
+    if min_size > 1 and v.size:
+        _speckles(v, np.float32(max_diff), int(min_size), out)
+    return out
