@@ -93,7 +93,7 @@ def compute_context(config: ClusterConfig = ClusterConfig()) -> Iterator[object 
         threads_per_worker=1,
         processes=True,
         memory_limit=config.memory_limit,
-        dashboard_address=None,
+        dashboard_address=":0",  # a free port: no clash with a running cluster
     ) as cluster, Client(cluster) as client:
         client.run(single_threaded_libraries)
         yield client

@@ -198,3 +198,19 @@ def _write_json(obj: dict, path: Path) -> None:
 
     with atomic_path(path) as tmp:
         Path(tmp).write_text(json.dumps(obj, indent=2, default=float))
+
+
+@_runner("train_sr")
+def run_train_sr(recipe, out: Path, cluster: ClusterConfig | None = None, overwrite: bool = False) -> dict:
+    """Train an SR network; the card (measured steps, time, PSNR) is the metrics."""
+    from tiledsm.sr.train import TrainConfig, train
+
+    values = dict(recipe.train)
+    for key in ("cache_dirs", "blur_range", "noise_range"):
+        if values.get(key) is not None:
+            values[key] = tuple(values[key])
+    values.setdefault("out", str(out / f"{values.get('model', 'model')}.pt"))
+    card = train(TrainConfig(**values))
+    metrics = {"pipeline": "train_sr", "card": card}
+    _write_json(metrics, out / "metrics.json")
+    return metrics

@@ -104,8 +104,30 @@ class DSMRecipe(_Strict):
     output: OutputSpec = OutputSpec()
 
 
+class TrainSRRecipe(_Strict):
+    """``pipeline: train_sr`` — train a super-resolution network; ``train``
+    holds the fields of :class:`tiledsm.sr.train.TrainConfig`."""
+
+    pipeline: Literal["train_sr"]
+    name: str = "train_sr"
+    train: dict[str, Any]
+
+    @field_validator("train")
+    @classmethod
+    def _valid_config(cls, value: dict[str, Any]) -> dict[str, Any]:
+        import dataclasses
+
+        from tiledsm.sr.train import TrainConfig
+
+        known = {f.name for f in dataclasses.fields(TrainConfig)}
+        unknown = sorted(set(value) - known)
+        if unknown:
+            raise ValueError(f"unknown field(s) {unknown}; known: {sorted(known)}")
+        return value
+
+
 Recipe = DSMRecipe
-_PIPELINES: dict[str, type[BaseModel]] = {"dsm": DSMRecipe}
+_PIPELINES: dict[str, type[BaseModel]] = {"dsm": DSMRecipe, "train_sr": TrainSRRecipe}
 
 
 def register_recipe(name: str, model: type[BaseModel]) -> None:

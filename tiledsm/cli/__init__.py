@@ -20,6 +20,7 @@ from tiledsm.errors import TiledsmError
 COMMAND_MODULES = (
     "tiledsm.cli.info",
     "tiledsm.cli.synth",
+    "tiledsm.cli.sr",
     "tiledsm.cli.run",
     "tiledsm.cli.dsm",
 )

@@ -1,0 +1,122 @@
+"""SRMD of Zhang, Zuo & Zhang (2018), "Learning a single convolutional
+super-resolution network for multiple degradations", CVPR,
+doi:10.1109/CVPR.2018.00344.
+
+Degradation model: ``LR = (HR * k)↓s + n`` with ``k`` a Gaussian blur
+kernel, ``↓s`` direct downsampling (every ``s``-th pixel) and ``n`` white
+Gaussian noise. The network takes the LR image plus ``t + 1`` constant
+maps: the kernel projected on a ``t``-dimensional PCA basis and the noise
+level.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import torch
+from torch import nn
+
+from tiledsm.sr.models._layers import ReflectConv2d, conv_radius
+from tiledsm.sr.models.base import SRModel
+
+__all__ = ["SRMD", "gaussian_kernel", "kernel_pca_basis", "KERNEL_SIZE"]
+
+#: side of the blur kernels (HR pixels)
+KERNEL_SIZE = 15
+
+
+def gaussian_kernel(sigma_x: float, sigma_y: float | None = None, theta: float = 0.0, size: int = KERNEL_SIZE) -> np.ndarray:
+    """Normalised (sum 1) anisotropic Gaussian kernel, ``size x size``,
+    centred on the middle pixel. Sigmas in HR pixels, ``theta`` in radians.
+    ``sigma <= 0`` gives a delta kernel."""
+    sigma_y = sigma_x if sigma_y is None else sigma_y
+    if sigma_x <= 0 or sigma_y <= 0:
+        k = np.zeros((size, size))
+        k[size // 2, size // 2] = 1.0
+        return k
+    r = np.arange(size) - size // 2
+    yy, xx = np.meshgrid(r, r, indexing="ij")
+    c, s = np.cos(theta), np.sin(theta)
+    u = c * xx + s * yy
+    v = -s * xx + c * yy
+    k = np.exp(-0.5 * ((u / sigma_x) ** 2 + (v / sigma_y) ** 2))
+    return k / k.sum()
+
+
+@functools.lru_cache(maxsize=8)
+def kernel_pca_basis(dim: int = 15, size: int = KERNEL_SIZE) -> np.ndarray:
+    """PCA basis ``(dim, size * size)`` of a fixed family of Gaussian kernels
+    (isotropic and anisotropic, sigma 0.2-4 HR px, 8 orientations).
+
+    The basis is stored in the model's state_dict, so shipped weights carry
+    the basis they were trained with (SVD signs are library-dependent)."""
+    kernels = []
+    for sx in np.linspace(0.2, 4.0, 20):
+        for sy in np.linspace(0.2, 4.0, 20):
+            for th in np.linspace(0, np.pi, 8, endpoint=False):
+                kernels.append(gaussian_kernel(sx, sy, th, size).ravel())
+    a = np.asarray(kernels)
+    _, _, vt = np.linalg.svd(a, full_matrices=False)
+    basis = vt[:dim].copy()
+    basis.flags.writeable = False  # cached: shared between calls
+    return basis
+
+
+class SRMD(SRModel):
+    """SRMD network: ``layers`` 3x3 convolutions on the LR grid (ReLU after
+    each but the last, batch norm in the middle ones), the last producing
+    ``scale**2`` channels rearranged by pixel shuffle. Reflect padding
+    before each convolution.
+
+    Parameters
+    ----------
+    scale : int
+        Upscaling factor.
+    layers : int
+        Convolution layers (paper: 12).
+    features : int
+        Hidden channels (paper: 128).
+    pca_dim : int
+        Dimension ``t`` of the kernel code (paper: 15).
+
+    Notes
+    -----
+    ``forward(x, blur_sigma, noise)``: ``blur_sigma`` is the isotropic
+    Gaussian sigma in HR pixels; ``noise`` is the noise standard deviation
+    in normalised units (same scale as ``x``).
+    """
+
+    takes_degradation = True
+
+    def __init__(self, scale: int = 2, layers: int = 12, features: int = 128, pca_dim: int = 15) -> None:
+        super().__init__(scale)
+        if layers < 2:
+            raise ValueError(f"SRMD: layers must be >= 2, got {layers}")
+        self.register_buffer("pca", torch.as_tensor(kernel_pca_basis(pca_dim), dtype=torch.float32))
+        mods: list[nn.Module] = [ReflectConv2d(1 + pca_dim + 1, features, 3), nn.ReLU(inplace=True)]
+        for _ in range(layers - 2):
+            mods += [ReflectConv2d(features, features, 3, bias=False), nn.BatchNorm2d(features), nn.ReLU(inplace=True)]
+        mods += [ReflectConv2d(features, self.scale**2, 3), nn.PixelShuffle(self.scale)]
+        self.body = nn.Sequential(*mods)
+
+    @property
+    def halo(self) -> int:
+        # everything happens on the LR grid; pixel shuffle is local
+        return conv_radius(self.body)
+
+    def degradation_code(self, blur_sigma: float, noise: float) -> torch.Tensor:
+        """The ``t + 1`` degradation values (PCA code of the kernel, noise)."""
+        k = torch.as_tensor(gaussian_kernel(float(blur_sigma)).ravel(), dtype=self.pca.dtype, device=self.pca.device)
+        code = self.pca @ k
+        return torch.cat([code, torch.as_tensor([float(noise)], dtype=code.dtype, device=code.device)])
+
+    def forward(self, x: torch.Tensor, blur_sigma: float | torch.Tensor = 1.0, noise: float | torch.Tensor = 0.0) -> torch.Tensor:  # noqa: D102
+        n, _, h, w = x.shape
+        if isinstance(blur_sigma, torch.Tensor) and blur_sigma.ndim == 1:
+            # one degradation per batch item (training)
+            code = torch.stack([self.degradation_code(float(b), float(v)) for b, v in zip(blur_sigma, noise)])
+        else:
+            code = self.degradation_code(float(blur_sigma), float(noise)).expand(n, -1)
+        maps = code[:, :, None, None].expand(n, code.shape[1], h, w).to(x.dtype)
+        return self.body(torch.cat([x, maps], dim=1))
