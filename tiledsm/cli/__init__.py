@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "tiledsm.cli.info",
     "tiledsm.cli.synth",
     "tiledsm.cli.sr",
+    "tiledsm.cli.compare",
     "tiledsm.cli.run",
     "tiledsm.cli.dsm",
 )

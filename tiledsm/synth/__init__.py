@@ -4,7 +4,8 @@ post-event version with a known displacement field).
 
 Public API: :func:`make_scene` -> :class:`SceneInfo`, :func:`degrade`,
 :func:`make_world`, :class:`World`, :class:`EventParams`,
-:class:`RadiometryParams`, :class:`TerrainParams`, :class:`TextureParams`.
+:class:`RadiometryParams`, :class:`TerrainParams`, :class:`TextureParams`,
+:class:`VisibilityParams`, :func:`visibility_window` (per-view visibility truth).
 """
 
 from tiledsm.synth.degrade import degrade
@@ -13,6 +14,7 @@ from tiledsm.synth.render import RadiometryParams, render_window
 from tiledsm.synth.scene import SceneInfo, make_scene
 from tiledsm.synth.terrain import TerrainParams, World, make_world
 from tiledsm.synth.texture import TextureParams
+from tiledsm.synth.visibility import VisibilityParams, visibility_window
 
 __all__ = [
     "make_scene",
@@ -26,4 +28,6 @@ __all__ = [
     "EventParams",
     "PostEventWorld",
     "render_window",
+    "VisibilityParams",
+    "visibility_window",
 ]

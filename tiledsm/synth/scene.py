@@ -12,10 +12,17 @@ with occlusion (:mod:`tiledsm.synth.render`) and writes, under ``out_dir``:
   ellipsoid) sampled at the cell centres of a north-up UTM grid (CRS and
   transform written), ``truth_label.tif``: uint8 class (0 ground,
   1 building, 2 tree);
+- visibility truth on the same grid (uint8 masks, definitions in
+  :mod:`tiledsm.synth.visibility`): ``visible_{i}.tif`` (1 = the cell's
+  truth point is seen by view ``i``), ``edge.tif`` (1 = 3 x 3 height range
+  above ``edge_range``: walls and borders) and ``visible.tif`` (1 = seen by
+  every view and not an edge cell: "visible textured ground", where DSMs
+  are evaluated);
 - with ``event=True``: ``post_view_*.tif``, ``post_truth_dsm.tif``,
-  ``post_truth_label.tif`` and the displacement truth ``dh.tif`` (post minus
-  pre DSM), ``dx.tif``, ``dy.tif``, ``dz.tif`` (metres; convention in
-  :mod:`tiledsm.synth.event`);
+  ``post_truth_label.tif``, the post-event masks ``post_visible.tif``,
+  ``post_visible_{i}.tif``, ``post_edge.tif``, and the displacement truth
+  ``dh.tif`` (post minus pre DSM), ``dx.tif``, ``dy.tif``, ``dz.tif``
+  (metres; convention in :mod:`tiledsm.synth.event`);
 - ``scene.json``: parameters, cameras, B/H measured from the fitted RPCs,
   RPC fit residuals, height range, paths.
 
@@ -47,6 +54,7 @@ from tiledsm.synth.event import EventParams, PostEventWorld, evaluate_post
 from tiledsm.synth.render import RadiometryParams, render_window
 from tiledsm.synth.terrain import TerrainParams, World, make_world
 from tiledsm.synth.texture import TextureParams
+from tiledsm.synth.visibility import VisibilityParams, visibility_window
 
 __all__ = ["SceneInfo", "make_scene", "view_pitches"]
 
@@ -81,9 +89,20 @@ class SceneInfo:
         ``"i-j" -> B/H`` for every pair of views.
     fit_residual_px : tuple of float
         Held-out maximum RPC fit error of each view, pixels.
+    visible_mask : Path
+        ``visible.tif``: uint8, 1 where the cell is visible in every view
+        and is not an edge cell (the cells on which DSMs are evaluated).
+    visible_views : tuple of Path
+        ``visible_{i}.tif``: uint8, 1 where the cell is visible in view
+        ``i`` (edge cells included); see :mod:`tiledsm.synth.visibility`.
+    edge_mask : Path
+        ``edge.tif``: uint8, 1 on edge cells (3 x 3 height range above
+        :attr:`VisibilityParams.edge_range`).
     event : dict or None
         With ``event=True``: paths of ``post_views`` (tuple), ``post_dsm``,
-        ``post_label``, ``dh``, ``dx``, ``dy``, ``dz``; and ``params``
+        ``post_label``, ``dh``, ``dx``, ``dy``, ``dz``, ``post_visible``,
+        ``post_visible_views`` (tuple), ``post_edge`` (the same masks for
+        the post-event surface and views); and ``params``
         (:class:`EventParams`).
     world : World
         The world itself (re-evaluable anywhere).
@@ -104,6 +123,9 @@ class SceneInfo:
     bh: float
     bh_pairs: dict
     fit_residual_px: tuple
+    visible_mask: Path
+    visible_views: tuple
+    edge_mask: Path
     event: dict | None
     world: World = field(repr=False)
     timings_s: dict = field(default_factory=dict)
@@ -225,6 +247,24 @@ def _truth_arrays(world, grid, origin, event_params=None):
                          meta=np.empty((0, 0, 0), np.float32))
 
 
+def _visibility_array(ground, cameras, grid, origin, h_range, params, radiometry):
+    """Lazy uint8 stack on ``grid``: visible in view 0, ..., view n-1,
+    visible in all views and not edge, edge."""
+    import dask.array as da
+
+    n = len(cameras)
+
+    def block(block_info=None):
+        (r0, r1), (c0, c1) = block_info[None]["array-location"][1:]
+        vis, edge = visibility_window(ground, cameras, origin, h_range, grid, (r0, r1), (c0, c1), params,
+                                      radiometry)
+        allv = vis.all(axis=0) & ~edge
+        return np.concatenate([vis, allv[None], edge[None]]).astype(np.uint8)
+
+    rc, cc = grid.chunks
+    return da.map_blocks(block, chunks=((n + 2,), rc, cc), dtype=np.uint8, meta=np.empty((0, 0, 0), np.uint8))
+
+
 # ------------------------------------------------------------------ geometry
 def _fit_view(camera: PushbroomCamera, h_range, view: int):
     from tiledsm.geometry.fit import fit_rpc_report
@@ -272,6 +312,7 @@ def make_scene(
     texture: TextureParams | None = None,
     radiometry: RadiometryParams | None = None,
     event_params: EventParams | None = None,
+    visibility: VisibilityParams | None = None,
     workers: int | None = None,
 ) -> SceneInfo:
     """Make a synthetic stereo scene with known truth (see module docstring).
@@ -300,7 +341,7 @@ def make_scene(
     azimuth_deg, rolls_deg, altitude
         Orbit direction (degrees from grid north), per-view roll (degrees),
         orbit height (metres); see :class:`PushbroomCamera`.
-    terrain, texture, radiometry, event_params : optional
+    terrain, texture, radiometry, event_params, visibility : optional
         Model parameters (defaults when omitted; the event defaults scale with
         the scene extent).
     workers : int, optional
@@ -325,6 +366,7 @@ def make_scene(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     radiometry = radiometry or RadiometryParams()
+    visibility = visibility or VisibilityParams()
     world = make_world(seed, gsd, terrain, texture)
     crs = utm_crs(*center)
     e0, n0 = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(*center)
@@ -373,6 +415,21 @@ def make_scene(
             dtype = np.uint8 if name == "post_label" else np.float32
             event_info[name] = out / fname
             items.append((arr.astype(dtype), out / fname, _profile(dtype, (size, size), grid=grid)))
+    mask_profile = _profile(np.uint8, (size, size), grid=grid)
+
+    def masks(ground, prefix):
+        vis = _visibility_array(ground, cameras, grid, origin, h_range, visibility, radiometry)
+        per_view = tuple(out / f"{prefix}visible_{i}.tif" for i in range(views))
+        for i, p in enumerate(per_view):
+            items.append((vis[i], p, mask_profile))
+        items.append((vis[views], out / f"{prefix}visible.tif", mask_profile))
+        items.append((vis[views + 1], out / f"{prefix}edge.tif", mask_profile))
+        return out / f"{prefix}visible.tif", per_view, out / f"{prefix}edge.tif"
+
+    visible_mask, visible_views, edge_mask = masks(world, "")
+    if ev is not None:
+        m = masks(ground_post, "post_")
+        event_info.update(post_visible=m[0], post_visible_views=m[1], post_edge=m[2])
     view_paths = []
     for i, (cam, rpc) in enumerate(zip(cameras, rpcs)):
         p = out / f"view_{i}.tif"
@@ -395,15 +452,24 @@ def make_scene(
         out_dir=out, views=tuple(view_paths), truth_dsm=paths["truth_dsm"], truth_label=paths["truth_label"],
         scene_json=out / "scene.json", rpcs=rpcs, cameras=cameras, grid=grid, origin=origin,
         height_range=tuple(h_range), bh=bh_pairs["0-1"], bh_pairs=bh_pairs,
-        fit_residual_px=tuple(f[1].check_max_px for f in fits), event=event_info, world=world,
+        fit_residual_px=tuple(f[1].check_max_px for f in fits), visible_mask=visible_mask,
+        visible_views=visible_views, edge_mask=edge_mask, event=event_info, world=world,
         timings_s=timings,
     )
     _write_json(info, size=size, gsd=gsd, bh_asked=bh, seed=seed, views=views, chunk=chunk, center=center,
-                radiometry=radiometry, fits=fits)
+                radiometry=radiometry, visibility=visibility, fits=fits)
     return info
 
 
-def _write_json(info: SceneInfo, *, fits, radiometry, **params) -> None:
+_VIS_DEFINITION = (
+    "visible_i = 1 where the cell's truth point (cell centre, truth height) projects inside image i and "
+    "its line of sight meets no surface between it and the sensor farther than tol_gsd * gsd metres "
+    "along the ray; edge = 1 where the 3x3 truth height range exceeds edge_range metres; "
+    "visible = all visible_i and not edge (uint8 masks)"
+)
+
+
+def _write_json(info: SceneInfo, *, fits, radiometry, visibility, **params) -> None:
     from tiledsm.io import atomic_path
 
     def rel(p):
@@ -438,7 +504,11 @@ def _write_json(info: SceneInfo, *, fits, radiometry, **params) -> None:
         "terrain": asdict(info.world.terrain),
         "texture": asdict(info.world.texture),
         "truth": {"dsm": rel(info.truth_dsm), "label": rel(info.truth_label),
-                  "label_classes": {"0": "ground", "1": "building", "2": "tree"}},
+                  "label_classes": {"0": "ground", "1": "building", "2": "tree"},
+                  "visible_mask": rel(info.visible_mask),
+                  "visible_views": [rel(p) for p in info.visible_views],
+                  "edge_mask": rel(info.edge_mask),
+                  "visibility": {**asdict(visibility), "definition": _VIS_DEFINITION}},
         "timings_s": info.timings_s,
     }
     if info.event is not None:
@@ -447,8 +517,9 @@ def _write_json(info: SceneInfo, *, fits, radiometry, **params) -> None:
             "params": asdict(ev["params"]),
             "convention": "dx, dy, dz: displacement of the ground point found at the cell after the event "
             "(it was at (x-dx, y-dy) and rose by dz); dh = post DSM - pre DSM",
-            **{k: rel(v) for k, v in ev.items() if k not in ("params", "post_views")},
+            **{k: rel(v) for k, v in ev.items() if k not in ("params", "post_views", "post_visible_views")},
             "post_views": [rel(p) for p in ev["post_views"]],
+            "post_visible_views": [rel(p) for p in ev["post_visible_views"]],
         }
     with atomic_path(info.scene_json) as tmp:
         Path(tmp).write_text(json.dumps(doc, indent=2))

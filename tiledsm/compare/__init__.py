@@ -1,0 +1,43 @@
+"""Pre/post DSM comparison: common grid, co-registration, dh, statistics, report.
+
+Public surface::
+
+    from tiledsm.compare import compare_dsms, CompareParams
+    result = compare_dsms("pre.tif", "post.tif", "out/", CompareParams(stable_mask="rupture.geojson"))
+    result.coregistration.dx_px, result.metrics["statistics"]["stable"]["nmad"]
+
+Modules: :mod:`~tiledsm.compare.align` (common grid), :mod:`~tiledsm.compare.coreg`
+(Nuth & Kääb, registry), :mod:`~tiledsm.compare.stable` (stable terrain),
+:mod:`~tiledsm.compare.stats`, :mod:`~tiledsm.compare.terrain`,
+:mod:`~tiledsm.compare.report`, :mod:`~tiledsm.compare.stage`.
+"""
+
+from tiledsm.compare.align import AlignedPair, align_dsms, open_dsm
+from tiledsm.compare.coreg import (
+    COREG_METHODS,
+    CoregistrationError,
+    CoregParams,
+    Coregistration,
+    NoStableTerrainError,
+    register_coreg,
+)
+from tiledsm.compare.stage import CompareParams, CompareResult, compare_dsms, difference_lazy, fit_coregistration
+from tiledsm.compare.stats import difference_statistics
+
+__all__ = [
+    "AlignedPair",
+    "align_dsms",
+    "open_dsm",
+    "COREG_METHODS",
+    "CoregistrationError",
+    "CoregParams",
+    "Coregistration",
+    "NoStableTerrainError",
+    "register_coreg",
+    "CompareParams",
+    "CompareResult",
+    "compare_dsms",
+    "difference_lazy",
+    "fit_coregistration",
+    "difference_statistics",
+]

@@ -1,0 +1,481 @@
+"""DSM co-registration: Nuth & Kääb (2011) horizontal shift + vertical bias.
+
+Nuth, C. and Kääb, A. (2011), Co-registration and bias corrections of
+satellite elevation data sets for quantifying glacier thickness change,
+The Cryosphere 5, 271-290, https://doi.org/10.5194/tc-5-271-2011.
+
+Sign conventions (those of demcompare's output)
+-----------------------------------------------
+The result is the correction **applied to the other (secondary) DSM** so it
+lies on the reference:
+
+``other_corrected[i, j] = other(i - dy_px, j - dx_px) + dz``
+
+i.e. ``dx_px`` moves the other DSM's content by ``+dx_px`` columns and
+``dy_px`` by ``+dy_px`` rows (south on a north-up grid); ``dz`` (metres) is
+added to its heights. In ground units ``dx = dx_px * transform.a`` and
+``dy = dy_px * transform.e`` (CRS units; degrees for a geographic CRS, and
+``dy`` is negative when the content moves south); ``dx_m``/``dy_m`` are the
+same shift in metres east/north. Example: demcompare's SRTM pair, where
+``sec[i, j] = ref[i + 5, j + 3]``, gives ``dx_px = 3, dy_px = 5``.
+
+Methods are registered by name in :data:`COREG_METHODS` ("nuth_kaab",
+"none"); an optional planar deramp is fitted after either.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from tiledsm.compare.terrain import slope_aspect
+from tiledsm.errors import TiledsmError
+
+__all__ = [
+    "CoregParams",
+    "Coregistration",
+    "FitWindow",
+    "CoregistrationError",
+    "NoStableTerrainError",
+    "COREG_METHODS",
+    "register_coreg",
+    "get_coreg",
+    "shift_array",
+    "shift_halo",
+    "fit_deramp",
+    "nmad",
+]
+
+
+class CoregistrationError(TiledsmError):
+    """Raised when co-registration cannot be estimated."""
+
+
+class NoStableTerrainError(CoregistrationError):
+    """Raised when no stable terrain is left to fit the co-registration."""
+
+
+def nmad(values: np.ndarray) -> float:
+    """Normalised median absolute deviation, ``1.4826 * median(|v - median(v)|)``."""
+    v = np.asarray(values, dtype=np.float64)
+    return float(1.4826 * np.median(np.abs(v - np.median(v))))
+
+
+# --------------------------------------------------------------------------- shifting
+def _kernel_taps(d: float, kernel: str) -> tuple[np.ndarray, np.ndarray]:
+    """Offsets ``o`` and weights ``w`` with ``out[i] = sum_k w_k in[i + o_k]`` = ``in(i - d)``."""
+    n = math.floor(d)
+    f = d - n
+    if abs(f) < 1e-12:
+        return np.array([-n]), np.array([1.0])
+    # sample position p = i - d = i - n - 1 + u with u = 1 - f in (0, 1)
+    u = 1.0 - f
+    base = -n - 1
+    if kernel == "linear":
+        return np.array([base, base + 1]), np.array([1.0 - u, u])
+    if kernel == "cubic":  # Keys (1981) cubic convolution, a = -0.5
+        a = -0.5
+
+        def w(t):
+            t = abs(t)
+            if t <= 1:
+                return (a + 2) * t**3 - (a + 3) * t**2 + 1
+            if t < 2:
+                return a * t**3 - 5 * a * t**2 + 8 * a * t - 4 * a
+            return 0.0
+
+        return np.array([base - 1, base, base + 1, base + 2]), np.array([w(u + 1), w(u), w(1 - u), w(2 - u)])
+    raise CoregistrationError(f"unknown shift kernel {kernel!r}: one of 'linear', 'cubic'")
+
+
+def shift_halo(dy: float, dx: float, kernel: str = "cubic") -> int:
+    """Halo (pixels) a block needs to be shifted by ``(dy, dx)`` on its own."""
+    oy, _ = _kernel_taps(dy, kernel)
+    ox, _ = _kernel_taps(dx, kernel)
+    return int(max(np.abs(oy).max(), np.abs(ox).max()))
+
+
+def shift_array(a: np.ndarray, dy: float, dx: float, kernel: str = "cubic") -> np.ndarray:
+    """Translate an image by a constant subpixel offset.
+
+    ``out[i, j] = a(i - dy, j - dx)`` (content moves ``+dy`` rows, ``+dx``
+    columns), interpolated separably with the given kernel ("cubic": Keys
+    cubic convolution a = -0.5; "linear"). Output cells whose support
+    touches a NaN or leaves the array are NaN. Integer shifts are exact.
+    Because the weights are the same for every cell, a block shifted with a
+    halo of :func:`shift_halo` pixels equals the same cells of the whole
+    array shifted (bit for bit).
+    """
+    out = np.asarray(a, dtype=np.float64)
+    for axis, d in ((0, dy), (1, dx)):
+        offs, wts = _kernel_taps(d, kernel)
+        halo = int(np.abs(offs).max())
+        padw = [(0, 0), (0, 0)]
+        padw[axis] = (halo, halo)
+        p = np.pad(out, padw, constant_values=np.nan)
+        n = out.shape[axis]
+        acc = None
+        for o, wk in zip(offs, wts):
+            if wk == 0.0:
+                continue
+            sl = [slice(None), slice(None)]
+            sl[axis] = slice(halo + o, halo + o + n)
+            term = wk * p[tuple(sl)]
+            acc = term if acc is None else acc + term
+        out = acc
+    return out.astype(np.float32)
+
+
+# --------------------------------------------------------------------------- parameters & result
+@dataclass(frozen=True)
+class CoregParams:
+    """Parameters of the co-registration fit.
+
+    Attributes
+    ----------
+    max_iterations : int
+        Nuth & Kääb iterations at most.
+    tolerance_px : float
+        Stop when the shift update is below this (pixels).
+    vertical : str
+        Statistic of stable ``dh`` giving the vertical bias: "median" or "mean".
+    nmad_k : float
+        Samples with ``|dh - median| > nmad_k * NMAD`` are outliers (each iteration).
+    min_slope_deg, max_slope_deg : float
+        Slope range (degrees, from the reference) of the samples used for the
+        horizontal fit (flat cells carry no shift information; very steep ones
+        are unreliable).
+    aspect_bins : int
+        Number of aspect sectors whose median ``dh / tan(slope)`` is fitted.
+    min_bin_count : int
+        Sectors with fewer samples are ignored.
+    shift_kernel : str
+        Subpixel interpolation of the shifted DSM ("cubic" or "linear").
+    deramp : bool
+        Remove a least-squares plane (instead of the median) from ``dh``
+        before each horizontal fit, so a tilt does not bias the shift; set
+        by :class:`~tiledsm.compare.stage.CompareParams` ``deramp``.
+    """
+
+    max_iterations: int = 10
+    tolerance_px: float = 0.005
+    vertical: str = "median"
+    nmad_k: float = 5.0
+    min_slope_deg: float = 1.0
+    max_slope_deg: float = 70.0
+    aspect_bins: int = 72
+    min_bin_count: int = 20
+    shift_kernel: str = "cubic"
+    deramp: bool = False
+
+    def __post_init__(self):
+        if self.vertical not in ("median", "mean"):
+            raise CoregistrationError(f"CoregParams.vertical: {self.vertical!r} is not 'median' or 'mean'")
+        if self.max_iterations < 1:
+            raise CoregistrationError("CoregParams.max_iterations must be >= 1")
+        if not 0 <= self.min_slope_deg < self.max_slope_deg <= 90:
+            raise CoregistrationError("CoregParams: need 0 <= min_slope_deg < max_slope_deg <= 90")
+        _kernel_taps(0.5, self.shift_kernel)
+
+
+@dataclass(frozen=True)
+class FitWindow:
+    """A window of the common grid loaded in memory for the fit.
+
+    Attributes
+    ----------
+    ref, other : ndarray
+        Heights (metres, NaN = none) of the window, same shape.
+    stable : ndarray of bool
+        Cells allowed in the fit (polygon exclusions already applied).
+    step_x, step_y : ndarray
+        Signed metres east per column / north per row, shape ``(rows, 1)``
+        (see :mod:`tiledsm.compare.terrain`).
+    row0, col0 : int
+        Position of the window in the common grid (for the deramp).
+    """
+
+    ref: np.ndarray
+    other: np.ndarray
+    stable: np.ndarray
+    step_x: np.ndarray
+    step_y: np.ndarray
+    row0: int = 0
+    col0: int = 0
+
+
+@dataclass(frozen=True)
+class Coregistration:
+    """A fitted co-registration (see the module notes for the signs).
+
+    Attributes
+    ----------
+    method : str
+    dx_px, dy_px : float
+        Shift applied to the other DSM, in columns / rows.
+    dz : float
+        Vertical offset added to the other DSM (metres), at the ramp origin.
+    ramp_col, ramp_row : float
+        Planar deramp added to the other DSM, metres per column / row, about
+        ``ramp_origin`` (row, col) of the common grid (zero without deramp).
+    iterations : int
+    converged : bool
+    n_samples : int
+        Stable samples in the last iteration.
+    median_before, nmad_before, median_after, nmad_after : float
+        Stable-terrain ``dh = other - ref`` (metres) before and after.
+    history : tuple
+        ``(dx_px, dy_px)`` after each iteration.
+    """
+
+    method: str
+    dx_px: float = 0.0
+    dy_px: float = 0.0
+    dz: float = 0.0
+    ramp_col: float = 0.0
+    ramp_row: float = 0.0
+    ramp_origin: tuple[float, float] = (0.0, 0.0)
+    iterations: int = 0
+    converged: bool = True
+    n_samples: int = 0
+    median_before: float = float("nan")
+    nmad_before: float = float("nan")
+    median_after: float = float("nan")
+    nmad_after: float = float("nan")
+    history: tuple = field(default_factory=tuple)
+
+    def vertical_field(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Vertical correction (metres) added to the other DSM at grid ``rows, cols``."""
+        r0, c0 = self.ramp_origin
+        return self.dz + self.ramp_col * (cols - c0) + self.ramp_row * (rows - r0)
+
+    def ground(self, crs, transform, step_x: float, step_y: float) -> dict:
+        """Shift in CRS units and metres (east/north), for ``metrics.json``.
+
+        ``step_x``/``step_y``: signed metres per column/row at the grid centre.
+        """
+        units = "degree" if crs.is_geographic else (crs.linear_units or "metre")
+        return {
+            "dx": self.dx_px * transform.a,
+            "dy": self.dy_px * transform.e,
+            "dz": self.dz,
+            "dx_px": self.dx_px,
+            "dy_px": self.dy_px,
+            "dx_m": self.dx_px * float(step_x),
+            "dy_m": self.dy_px * float(step_y),
+            "units": {"dx": units, "dy": units, "dz": "m", "dx_m": "m east", "dy_m": "m north"},
+        }
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["history"] = [list(h) for h in self.history]
+        d["ramp_origin"] = list(self.ramp_origin)
+        return d
+
+
+# --------------------------------------------------------------------------- registry
+CoregFn = Callable[[list, CoregParams], Coregistration]
+#: name -> fit function ``fn(windows: list[FitWindow], params) -> Coregistration``
+COREG_METHODS: dict[str, CoregFn] = {}
+
+
+def register_coreg(name: str) -> Callable[[CoregFn], CoregFn]:
+    """Decorator adding a co-registration method; refuses duplicate names."""
+
+    def deco(fn: CoregFn) -> CoregFn:
+        if name in COREG_METHODS:
+            raise ValueError(f"co-registration method {name!r} is already registered")
+        COREG_METHODS[name] = fn
+        return fn
+
+    return deco
+
+
+def get_coreg(name: str) -> CoregFn:
+    """The registered method ``name`` (error listing the known names)."""
+    try:
+        return COREG_METHODS[name]
+    except KeyError:
+        raise CoregistrationError(f"unknown co-registration method {name!r}: one of {sorted(COREG_METHODS)}") from None
+
+
+# --------------------------------------------------------------------------- fitting helpers
+def _samples(windows, shift, dz, params, terrain=None):
+    """Pool ``dh`` (and slope/aspect when ``terrain`` is given) of stable, valid cells."""
+    dhs, slopes, aspects, rows, cols = [], [], [], [], []
+    for k, w in enumerate(windows):
+        moved = w.other if shift == (0.0, 0.0) else shift_array(w.other, shift[0], shift[1], params.shift_kernel)
+        dh = moved.astype(np.float64) + dz - w.ref
+        ok = w.stable & np.isfinite(dh)
+        if terrain is not None:
+            slope, aspect = terrain[k]
+            ok &= np.isfinite(slope)
+            slopes.append(slope[ok])
+            aspects.append(aspect[ok])
+        dhs.append(dh[ok])
+        r, c = np.nonzero(ok)
+        rows.append(r + w.row0)
+        cols.append(c + w.col0)
+    cat = lambda xs: np.concatenate(xs) if xs else np.empty(0)  # noqa: E731
+    return cat(dhs), cat(slopes), cat(aspects), cat(rows), cat(cols)
+
+
+def _inliers(dh: np.ndarray, k: float) -> np.ndarray:
+    med = np.median(dh)
+    s = nmad(dh)
+    if s == 0:
+        return np.abs(dh - med) <= 1e-9
+    return np.abs(dh - med) <= k * s
+
+
+def _mean_steps(windows) -> tuple[float, float]:
+    sx = np.concatenate([np.broadcast_to(w.step_x, (w.ref.shape[0], 1)).ravel() for w in windows])
+    sy = np.concatenate([np.broadcast_to(w.step_y, (w.ref.shape[0], 1)).ravel() for w in windows])
+    return float(sx.mean()), float(sy.mean())
+
+
+def _require_samples(n: int, what: str):
+    if n == 0:
+        raise NoStableTerrainError(
+            f"no stable terrain left for {what}: every cell is NaN, excluded by the stable-terrain "
+            "polygons, or outside the slope range"
+        )
+
+
+def _plane(dh: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Least-squares plane ``p0 + p1*col + p2*row`` of ``dh``, evaluated at the samples."""
+    r0, c0 = rows.mean(), cols.mean()
+    design = np.column_stack([np.ones_like(dh), cols - c0, rows - r0])
+    coef, *_ = np.linalg.lstsq(design, dh, rcond=None)
+    return design @ coef
+
+
+def _vertical(dh: np.ndarray, params: CoregParams) -> float:
+    return float(np.median(dh) if params.vertical == "median" else np.mean(dh))
+
+
+# --------------------------------------------------------------------------- methods
+@register_coreg("none")
+def fit_none(windows: list[FitWindow], params: CoregParams) -> Coregistration:
+    """No co-registration: zero shift and zero vertical offset (statistics only)."""
+    dh, *_ = _samples(windows, (0.0, 0.0), 0.0, params)
+    _require_samples(dh.size, "the difference statistics")
+    med, s = float(np.median(dh)), nmad(dh)
+    return Coregistration("none", n_samples=int(dh.size), median_before=med, nmad_before=s, median_after=med, nmad_after=s)
+
+
+@register_coreg("nuth_kaab")
+def fit_nuth_kaab(windows: list[FitWindow], params: CoregParams) -> Coregistration:
+    """Nuth & Kääb (2011) iterative shift + vertical bias on stable terrain.
+
+    Each iteration shifts the other DSM by the current estimate (subpixel,
+    :func:`shift_array`), takes ``dh = other - ref`` on stable cells within
+    the slope range, drops ``|dh - median| > nmad_k * NMAD`` outliers,
+    removes the median (vertical bias), and fits the median of ``dh / tan(slope)`` in aspect sectors with
+    ``a * cos(b - aspect) + c`` — linear in ``(a cos b, a sin b, c)``, solved
+    by least squares. ``(a sin b, a cos b)`` is the remaining displacement of
+    the other DSM (metres east, north), converted to pixels and subtracted.
+    Slope and aspect come from the reference DSM. The vertical bias is the
+    median (or mean) stable ``dh`` after the last shift.
+    """
+    p = params
+    terrain = [slope_aspect(w.ref, w.step_x, w.step_y) for w in windows]
+    dh0, *_ = _samples(windows, (0.0, 0.0), 0.0, p)
+    _require_samples(dh0.size, "co-registration")
+    med0 = float(np.median(dh0))
+    nmad0 = nmad(dh0)
+    sx, sy = _mean_steps(windows)
+    dy_px = dx_px = 0.0
+    history = []
+    converged = False
+    edges = np.linspace(0.0, 2 * np.pi, p.aspect_bins + 1)
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    it = 0
+    for it in range(1, p.max_iterations + 1):
+        dh, slope, aspect, rows, cols = _samples(windows, (dy_px, dx_px), 0.0, p, terrain)
+        sel = (slope >= p.min_slope_deg) & (slope <= p.max_slope_deg)
+        dh, slope, aspect, rows, cols = dh[sel], slope[sel], aspect[sel], rows[sel], cols[sel]
+        _require_samples(dh.size, "the Nuth & Kääb fit (slope range)")
+        keep = _inliers(dh, p.nmad_k)
+        # remove the current vertical bias (or plane) first: bias / tan(slope) is not a constant
+        resid = dh[keep] - (_plane(dh[keep], rows[keep], cols[keep]) if p.deramp else np.median(dh[keep]))
+        target = resid / np.tan(np.deg2rad(slope[keep]))
+        asp = aspect[keep]
+        idx = np.clip(np.digitize(asp, edges) - 1, 0, p.aspect_bins - 1)
+        order = np.argsort(idx, kind="stable")
+        idx_s, tgt_s = idx[order], target[order]
+        starts = np.searchsorted(idx_s, np.arange(p.aspect_bins + 1))
+        meds, angs = [], []
+        for b in range(p.aspect_bins):
+            seg = tgt_s[starts[b] : starts[b + 1]]
+            if seg.size >= p.min_bin_count:
+                meds.append(np.median(seg))
+                angs.append(centres[b])
+        if len(meds) < 3:
+            raise NoStableTerrainError(
+                f"Nuth & Kääb fit: only {len(meds)} aspect sectors hold >= {p.min_bin_count} stable samples "
+                "(need 3); the stable terrain is too small or too flat"
+            )
+        angs = np.asarray(angs)
+        design = np.column_stack([np.cos(angs), np.sin(angs), np.ones_like(angs)])
+        (s_n, s_e, _c), *_ = np.linalg.lstsq(design, np.asarray(meds), rcond=None)
+        d_col = -s_e / sx
+        d_row = -s_n / sy
+        dx_px += d_col
+        dy_px += d_row
+        history.append((dx_px, dy_px))
+        if math.hypot(d_col, d_row) < p.tolerance_px:
+            converged = True
+            break
+    dh, *_ = _samples(windows, (dy_px, dx_px), 0.0, p)
+    _require_samples(dh.size, "the vertical bias")
+    inl = _inliers(dh, p.nmad_k)
+    dz = -_vertical(dh[inl], p) + 0.0
+    after = dh + dz
+    return Coregistration(
+        "nuth_kaab",
+        dx_px=float(dx_px),
+        dy_px=float(dy_px),
+        dz=float(dz),
+        iterations=it,
+        converged=converged,
+        n_samples=int(inl.sum()),
+        median_before=med0,
+        nmad_before=nmad0,
+        median_after=float(np.median(after)),
+        nmad_after=nmad(after),
+        history=tuple(history),
+    )
+
+
+def fit_deramp(windows: list[FitWindow], coreg: Coregistration, params: CoregParams, origin: tuple[float, float]) -> Coregistration:
+    """Add a planar correction ``dz + ramp_col*(col-c0) + ramp_row*(row-r0)``.
+
+    Fitted by least squares to the stable inlier ``dh`` left after ``coreg``
+    (its shift applied); replaces ``coreg.dz``. ``origin`` is ``(r0, c0)``,
+    normally the grid centre, so ``dz`` stays the offset there.
+    """
+    dh, _, _, rows, cols = _samples(windows, (coreg.dy_px, coreg.dx_px), 0.0, params)
+    _require_samples(dh.size, "the deramp")
+    rows, cols = rows - origin[0], cols - origin[1]
+    keep = _inliers(dh + coreg.dz, params.nmad_k)
+    design = np.column_stack([np.ones(keep.sum()), cols[keep], rows[keep]])
+    (p0, pc, pr), *_ = np.linalg.lstsq(design, dh[keep], rcond=None)
+    after = dh - (p0 + pc * cols + pr * rows)
+    return Coregistration(
+        **{
+            **asdict(coreg),
+            "method": coreg.method + "+deramp",
+            "dz": float(-p0),
+            "ramp_col": float(-pc),
+            "ramp_row": float(-pr),
+            "ramp_origin": (float(origin[0]), float(origin[1])),
+            "median_after": float(np.median(after)),
+            "nmad_after": nmad(after),
+            "n_samples": int(keep.sum()),
+            "history": coreg.history,
+        }
+    )

@@ -1,0 +1,495 @@
+"""The DSM comparison stage: align, co-register, difference, measure, report.
+
+``compare_dsms(ref, other, out_dir, params)`` writes into ``out_dir``:
+
+- ``dh.zarr``: Dataset on the common grid with ``dh`` (float32, metres,
+  ``other_corrected - ref``, NaN = no difference), ``stable`` (uint8: 0 no
+  difference, 1 stable terrain, 2 not stable) and ``slope_class`` (uint8
+  index into ``params.slope_classes`` from the reference slope in percent,
+  255 = undefined);
+- ``dh.tif``: the same ``dh`` as a Cloud-Optimised GeoTIFF;
+- ``dh.png`` (dh over the reference hillshade, with colour bar),
+  ``dh_hist.png``, ``dh_slope_classes.png``;
+- ``metrics.json``: ``coregistration: {dx, dy, dz, dx_px, dy_px, dx_m,
+  dy_m, ...}`` and the statistics (all / stable / unstable / slope classes);
+- ``report.html``: tables and the figures embedded.
+
+Nothing is written before the inputs are validated and the co-registration
+is fitted; products are written to a hidden staging folder inside
+``out_dir`` and moved into place only when all of them succeeded.
+
+Tiling: the common grid is chunked (``params.chunks``); the shift is
+applied with ``map_overlap`` (halo = ``ceil(|shift|)`` + kernel support),
+slope with a halo of 1, polygon masks with ``map_blocks``, and statistics
+are per-block histograms reduced in a tree, so memory per task is a few
+blocks whatever the grid size. Computation runs on the current dask
+scheduler (wrap the call in :func:`tiledsm.cluster.compute_context`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import shutil
+import time
+import uuid
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import dask
+import dask.array as da
+import numpy as np
+import rioxarray  # noqa: F401  (registers .rio)
+import xarray as xr
+from affine import Affine
+
+from tiledsm.compare.align import AlignedPair, align_dsms, open_dsm
+from tiledsm.compare.coreg import (
+    CoregParams,
+    Coregistration,
+    FitWindow,
+    NoStableTerrainError,
+    fit_deramp,
+    get_coreg,
+    shift_array,
+    shift_halo,
+)
+from tiledsm.compare.stable import exclusion_mask, exclusion_mask_lazy, read_polygons, stable_cells
+from tiledsm.compare.stats import SLOPE_CLASSES, HistogramStats, slope_class_labels
+from tiledsm.compare.terrain import metric_steps, slope_percent
+from tiledsm.errors import InputFileError, NoOverlapError, TiledsmError
+
+__all__ = ["CompareParams", "CompareResult", "compare_dsms", "difference_lazy", "fit_coregistration"]
+
+log = logging.getLogger("tiledsm.compare")
+
+STABLE_NONE, STABLE_YES, STABLE_NO = 0, 1, 2
+NO_CLASS = 255
+
+
+@dataclass(frozen=True)
+class CompareParams:
+    """Parameters of :func:`compare_dsms`.
+
+    Attributes
+    ----------
+    coreg : str
+        Co-registration method (:data:`tiledsm.compare.coreg.COREG_METHODS`):
+        "nuth_kaab" or "none".
+    deramp : bool
+        Also fit and remove a plane from the stable ``dh``.
+    coreg_params : CoregParams
+        Fit parameters (iterations, outlier ``nmad_k``, slope range, kernel).
+    stable_mask : str or None
+        GeoJSON of areas to **exclude** from stable terrain (rupture zone).
+    max_slope_deg : float
+        Cells steeper than this on the reference are not stable terrain
+        (statistics); the fit also uses ``coreg_params.max_slope_deg``.
+    chunks : int
+        Chunk edge (cells) of the common grid.
+    resampling : str
+        Resampling of the other DSM onto the reference grid when needed.
+    slope_classes : tuple of float
+        Lower bounds (percent) of the slope classes.
+    max_fit_pixels : int
+        At most this many cells are loaded for the fit; larger grids are
+        sampled with ``fit_window``-sized windows on a regular lattice.
+    fit_window : int
+        Edge (cells) of those windows.
+    hist_bins : int
+        Bins of the histogram giving median/NMAD of large grids.
+    cog, figures, report : bool
+        Write ``dh.tif``, the PNG quick-looks, ``report.html``.
+    quicklook_size : int
+        Longest edge (pixels) of the decimated arrays drawn in figures.
+    """
+
+    coreg: str = "nuth_kaab"
+    deramp: bool = False
+    coreg_params: CoregParams = field(default_factory=CoregParams)
+    stable_mask: str | None = None
+    max_slope_deg: float = 70.0
+    chunks: int = 1024
+    resampling: str = "bilinear"
+    slope_classes: tuple = SLOPE_CLASSES
+    max_fit_pixels: int = 4_000_000
+    fit_window: int = 512
+    hist_bins: int = 65536
+    cog: bool = True
+    figures: bool = True
+    report: bool = True
+    quicklook_size: int = 1500
+
+    def __post_init__(self):
+        get_coreg(self.coreg)  # unknown name -> clear error now
+        if self.chunks < 16:
+            raise TiledsmError(f"CompareParams.chunks: {self.chunks} is too small (>= 16)")
+        if list(self.slope_classes) != sorted(self.slope_classes) or self.slope_classes[0] != 0:
+            raise TiledsmError(f"CompareParams.slope_classes: {self.slope_classes} must be increasing from 0")
+
+
+@dataclass(frozen=True)
+class CompareResult:
+    """What :func:`compare_dsms` produced.
+
+    Attributes
+    ----------
+    out_dir : Path
+    coregistration : Coregistration
+    metrics : dict
+        The content of ``metrics.json``.
+    products : dict
+        Product name -> path.
+    """
+
+    out_dir: Path
+    coregistration: Coregistration
+    metrics: dict
+    products: dict
+
+
+# --------------------------------------------------------------------------- fit
+def _fit_windows(pair: AlignedPair, geoms, params: CompareParams) -> list[FitWindow]:
+    """Windows of the common grid loaded for the fit (all of it when small)."""
+    H, W = pair.ref.shape
+    if H * W <= params.max_fit_pixels:
+        boxes = [(0, H, 0, W)]
+    else:
+        ws = min(params.fit_window, H, W)
+        n = max(1, params.max_fit_pixels // (ws * ws))
+        ny = max(1, min(H // ws, round(math.sqrt(n * H / W))))
+        nx = max(1, min(W // ws, n // ny))
+        rs = np.linspace(0, H - ws, ny).astype(int)
+        cs = np.linspace(0, W - ws, nx).astype(int)
+        boxes = [(r, r + ws, c, c + ws) for r in rs for c in cs]
+    slices = [(pair.ref.data[r0:r1, c0:c1], pair.other.data[r0:r1, c0:c1]) for r0, r1, c0, c1 in boxes]
+    loaded = dask.compute(*slices)
+    y = pair.ref.y.values
+    windows = []
+    for (r0, r1, c0, c1), (ref, oth) in zip(boxes, loaded):
+        excluded = exclusion_mask(geoms, pair.transform @ Affine.translation(c0, r0), ref.shape)
+        sx, sy = metric_steps(pair.crs, pair.transform, y[r0:r1])
+        windows.append(FitWindow(ref, oth, ~excluded & np.isfinite(ref), sx, sy, r0, c0))
+    _check_valid(pair, windows)
+    return windows
+
+
+def _check_valid(pair: AlignedPair, windows: list[FitWindow]) -> None:
+    """All-NaN inputs and no common valid cell -> clear errors."""
+    rname, oname = pair.ref.attrs["source"], pair.other.attrs["source"]
+    if any(np.isfinite(w.ref).any() and np.isfinite(w.other).any() and (np.isfinite(w.ref) & np.isfinite(w.other)).any() for w in windows):
+        return
+    ref_ok, oth_ok, both = dask.compute(
+        da.isfinite(pair.ref.data).any(),
+        da.isfinite(pair.other.data).any(),
+        (da.isfinite(pair.ref.data) & da.isfinite(pair.other.data)).any(),
+    )
+    if not ref_ok:
+        raise InputFileError(f"{rname}: no valid height (all NaN/nodata) where it overlaps {oname}")
+    if not oth_ok:
+        raise InputFileError(f"{oname}: no valid height (all NaN/nodata) where it overlaps {rname}")
+    if not both:
+        raise NoOverlapError(f"{rname} and {oname}: their bounds overlap but no cell has a valid height in both")
+
+
+def fit_coregistration(pair: AlignedPair, params: CompareParams, geoms=()) -> Coregistration:
+    """Fit the co-registration of ``pair`` on its stable terrain (in memory)."""
+    windows = _fit_windows(pair, list(geoms), params)
+    if not any(w.stable.any() for w in windows):
+        raise NoStableTerrainError(
+            f"no stable terrain left to co-register {pair.other.attrs['source']} on {pair.ref.attrs['source']}: "
+            f"the exclusion polygons ({params.stable_mask}) cover every valid cell"
+        )
+    cp = replace(params.coreg_params, deramp=params.deramp)
+    coreg = get_coreg(params.coreg)(windows, cp)
+    if params.deramp:
+        H, W = pair.ref.shape
+        coreg = fit_deramp(windows, coreg, cp, ((H - 1) / 2, (W - 1) / 2))
+    return coreg
+
+
+# --------------------------------------------------------------------------- lazy difference
+def _shift_block(block, dy, dx, kernel):
+    return shift_array(block, dy, dx, kernel)
+
+
+def _vertical_block(block, coreg: Coregistration, block_info=None):
+    (r0, r1), (c0, c1) = block_info[0]["array-location"]
+    rows = np.arange(r0, r1, dtype=np.float64)[:, None]
+    cols = np.arange(c0, c1, dtype=np.float64)[None, :]
+    return (block + coreg.vertical_field(rows, cols)).astype(np.float32)
+
+
+def difference_lazy(pair: AlignedPair, coreg: Coregistration, kernel: str = "cubic") -> da.Array:
+    """``dh = other_corrected - ref`` as a dask array (float32, metres).
+
+    The other DSM is shifted by ``(coreg.dy_px, coreg.dx_px)`` with
+    :func:`~tiledsm.compare.coreg.shift_array` in a ``map_overlap`` whose
+    halo is :func:`~tiledsm.compare.coreg.shift_halo`; cells whose
+    interpolation support leaves the common grid are NaN.
+    """
+    other = pair.other.data
+    if coreg.dx_px or coreg.dy_px:
+        halo = shift_halo(coreg.dy_px, coreg.dx_px, kernel)
+        other = da.map_overlap(
+            _shift_block, other, depth=halo, boundary=np.nan, dtype=np.float32,
+            meta=np.empty((0, 0), np.float32), dy=coreg.dy_px, dx=coreg.dx_px, kernel=kernel,
+        )
+    if coreg.dz or coreg.ramp_col or coreg.ramp_row:
+        other = da.map_blocks(_vertical_block, other, coreg, dtype=np.float32, meta=np.empty((0, 0), np.float32))
+    return (other - pair.ref.data).astype(np.float32)
+
+
+def _slope_block(z, yy, crs, transform):
+    sx, sy = metric_steps(crs, transform, yy[:, yy.shape[1] // 2])  # column 0 may be the NaN halo
+    return slope_percent(z, sx, sy).astype(np.float32)
+
+
+def _slope_lazy(pair: AlignedPair) -> da.Array:
+    ref = pair.ref.data
+    y = da.from_array(pair.ref.y.values.reshape(-1, 1), chunks=(ref.chunks[0], 1))
+    yy = da.broadcast_to(y, ref.shape, chunks=ref.chunks)
+    return da.map_overlap(
+        _slope_block, ref, yy, depth=1, boundary=np.nan, dtype=np.float32,
+        meta=np.empty((0, 0), np.float32), crs=pair.crs, transform=pair.transform,
+    )
+
+
+def _class_block(slope_pct, excluded, dh, bounds, max_slope_deg, med, nmad_v, k):
+    cls = np.full(slope_pct.shape, NO_CLASS, dtype=np.uint8)
+    ok = np.isfinite(slope_pct)
+    cls[ok] = (np.searchsorted(np.asarray(bounds), slope_pct[ok], side="right") - 1).astype(np.uint8)
+    st = np.full(dh.shape, STABLE_NONE, dtype=np.uint8)
+    valid = np.isfinite(dh)
+    slope_deg = np.degrees(np.arctan(slope_pct / 100.0))
+    stable = valid & ok & stable_cells(dh, slope_deg, excluded, med, nmad_v, k, max_slope_deg)
+    st[valid] = STABLE_NO
+    st[stable] = STABLE_YES
+    return np.stack([st, cls])
+
+
+def _stats_block(dh, ref, layers, hs: HistogramStats, nclass: int):
+    st, cls = layers[0], layers[1]
+    members = [np.ones(dh.shape, bool), st == STABLE_YES, st == STABLE_NO]
+    members += [(st == STABLE_YES) & (cls == c) for c in range(nclass)]
+    evaluated = np.isfinite(ref)
+    return hs.block(dh, ref, np.stack(members), np.broadcast_to(evaluated, (len(members),) + dh.shape))
+
+
+def _tree_merge(parts):
+    while len(parts) > 1:
+        parts = [
+            dask.delayed(HistogramStats.merge, pure=True)(parts[i], parts[i + 1]) if i + 1 < len(parts) else parts[i]
+            for i in range(0, len(parts), 2)
+        ]
+    return parts[0]
+
+
+# --------------------------------------------------------------------------- stage
+def _as_input(x, chunks):
+    if isinstance(x, (str, os.PathLike)):
+        return open_dsm(x, chunks)
+    if isinstance(x, xr.DataArray):
+        if x.rio.crs is None:
+            raise InputFileError(f"{x.attrs.get('source', x.name or '<in-memory DSM>')}: DSM has no CRS (write one with .rio.write_crs)")
+        if "source" not in x.attrs:
+            x = x.copy()
+            x.attrs["source"] = x.name or "<in-memory DSM>"
+        return x
+    raise TypeError(f"expected a DSM path or an xarray.DataArray, got {type(x).__name__}")
+
+
+def _move_into(staging: Path, out: Path) -> None:
+    for item in staging.iterdir():
+        final = out / item.name
+        if final.exists():
+            if final.is_dir():
+                shutil.rmtree(final)
+            else:
+                final.unlink()
+        os.rename(item, final)
+    staging.rmdir()
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, (np.floating, float)):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def compare_dsms(ref, other, out_dir: str | Path, params: CompareParams = CompareParams()) -> CompareResult:
+    """Compare two DSMs: co-register ``other`` on ``ref``, difference, measure, report.
+
+    Parameters
+    ----------
+    ref, other : path or xr.DataArray
+        Reference (e.g. pre-event) and other (post-event) DSMs: GeoTIFF /
+        zarr paths, or georeferenced DataArrays (dask-backed for large
+        grids; ``attrs['source']`` names them in messages). Heights in
+        metres; any CRS and resolution (other is brought onto ref's grid).
+    out_dir : path
+        Output folder (created); products listed in the module notes.
+    params : CompareParams
+
+    Returns
+    -------
+    CompareResult
+
+    Raises
+    ------
+    InputFileError
+        Unreadable DSM, no CRS, all-NaN DSM over the overlap, bad GeoJSON.
+    NoOverlapError
+        DSMs with no ground (or no valid cell) in common.
+    NoStableTerrainError
+        Masking left no stable terrain to fit the co-registration.
+    """
+    t0 = time.perf_counter()
+    out = Path(out_dir)
+    ref_da = _as_input(ref, params.chunks)
+    oth_da = _as_input(other, params.chunks)
+    pair = align_dsms(ref_da, oth_da, params.chunks, params.resampling)
+    geoms = read_polygons(params.stable_mask, pair.crs) if params.stable_mask else []
+    coreg = fit_coregistration(pair, params, geoms)
+    t_fit = time.perf_counter() - t0
+    log.info("co-registration %s: dx=%.3f px dy=%.3f px dz=%.3f m", coreg.method, coreg.dx_px, coreg.dy_px, coreg.dz)
+
+    # ---- lazy products
+    cp = params.coreg_params
+    dh = difference_lazy(pair, coreg, cp.shift_kernel)
+    slope = _slope_lazy(pair)
+    excluded = exclusion_mask_lazy(geoms, pair.transform, pair.ref.data)
+    layers = da.map_blocks(
+        _class_block, slope, excluded, dh, np.asarray(params.slope_classes, float), params.max_slope_deg,
+        coreg.median_after, coreg.nmad_after, cp.nmad_k,
+        dtype=np.uint8, new_axis=0, chunks=((2,),) + dh.chunks, meta=np.empty((0, 0, 0), np.uint8),
+    )
+    coords = {"y": pair.ref.y, "x": pair.ref.x}
+    ds = xr.Dataset(
+        {
+            "dh": (("y", "x"), dh, {"units": "m", "long_name": "other_corrected - ref"}),
+            "stable": (("y", "x"), layers[0], {"flag_values": "0 1 2", "flag_meanings": "no_dh stable not_stable"}),
+            "slope_class": (("y", "x"), layers[1], {"flag_values": "0..n-1 255", "lower_bounds_percent": json.dumps(list(params.slope_classes))}),
+        },
+        coords=coords,
+        attrs={"ref": pair.ref.attrs["source"], "other": pair.other.attrs["source"], "coregistration": json.dumps(_jsonable(coreg.to_dict()))},
+    )
+    ds = ds.rio.write_crs(pair.crs).rio.write_transform(pair.transform)
+
+    out.mkdir(parents=True, exist_ok=True)
+    staging = out / f".compare-staging-{uuid.uuid4().hex[:8]}"
+    staging.mkdir()
+    try:
+        products = _write_products(ds, pair, coreg, geoms, params, staging, t0, t_fit)
+        _move_into(staging, out)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    metrics = json.loads((out / "metrics.json").read_text())
+    return CompareResult(out, coreg, metrics, {k: out / Path(v).name for k, v in products.items()})
+
+
+def _write_products(ds, pair, coreg, geoms, params, staging: Path, t0: float, t_fit: float) -> dict:
+    from tiledsm.io import open_product, write_cog, write_zarr
+
+    products = {}
+    t1 = time.perf_counter()
+    write_zarr(ds, staging / "dh.zarr")
+    products["dh_zarr"] = staging / "dh.zarr"
+    t_diff = time.perf_counter() - t1
+
+    # ---- statistics from the stored layers (one lazy pass)
+    t2 = time.perf_counter()
+    stored = open_product(staging / "dh.zarr")
+    s = max(coreg.nmad_after, 0.01) if math.isfinite(coreg.nmad_after) else 1.0
+    med = coreg.median_after if math.isfinite(coreg.median_after) else 0.0
+    half = max(20.0 * s, 20.0)  # +-20 NMAD (>= 20 m): resolution NMAD/1600 with 65536 bins
+    labels = slope_class_labels(params.slope_classes)
+    groups = ("all", "stable", "unstable") + tuple(f"slope {lab}" for lab in labels)
+    hs = HistogramStats(groups, med - half, med + half, params.hist_bins)
+    dh_d = stored["dh"].data
+    lay = da.stack([stored["stable"].data, stored["slope_class"].data]).rechunk((2,) + dh_d.chunks)
+    ref_d = pair.ref.data.rechunk(dh_d.chunks)
+    parts = [
+        dask.delayed(_stats_block, pure=True)(d, r, l, hs, len(labels))
+        for d, r, l in zip(dh_d.to_delayed().ravel(), ref_d.to_delayed().ravel(), lay.to_delayed().ravel())
+    ]
+    (part,) = dask.compute(_tree_merge(parts))
+    stats = hs.finalize(part)
+    n_all = stats["all"]["count"]
+    for name, st in stats.items():
+        st["percent_of_valid"] = 100.0 * st["count"] / n_all if n_all else float("nan")
+        if name != "all":
+            st.pop("completeness", None)
+            st.pop("cells", None)
+    t_stats = time.perf_counter() - t2
+
+    H, W = pair.ref.shape
+    yc = float(pair.ref.y.values[H // 2])
+    sx, sy = metric_steps(pair.crs, pair.transform, np.array([yc]))
+    creg = coreg.ground(pair.crs, pair.transform, float(sx[0, 0]), float(sy[0, 0]))
+    creg.update(
+        method=coreg.method, iterations=coreg.iterations, converged=coreg.converged, n_samples=coreg.n_samples,
+        ramp_col=coreg.ramp_col, ramp_row=coreg.ramp_row, ramp_origin=list(coreg.ramp_origin),
+        fit_sample={"median_before": coreg.median_before, "nmad_before": coreg.nmad_before,
+                    "median_after": coreg.median_after, "nmad_after": coreg.nmad_after},
+        history_px=[list(h) for h in coreg.history],
+    )
+    metrics = {
+        "ref": pair.ref.attrs["source"],
+        "other": pair.other.attrs["source"],
+        "dh_definition": "other_corrected - ref (m)",
+        "grid": {
+            "crs": pair.crs.to_string(), "transform": list(pair.transform)[:6], "width": W, "height": H,
+            "ref_window": list(pair.ref_window), "other_resampled": pair.resampled,
+            "metres_per_pixel": [abs(float(sx[0, 0])), abs(float(sy[0, 0]))],
+        },
+        "coregistration": creg,
+        "statistics": {k: stats[k] for k in ("all", "stable", "unstable")},
+        "slope_classes": {lab: stats[f"slope {lab}"] for lab in labels},
+        "stable_terrain": {
+            "exclusion_polygons": params.stable_mask, "n_polygons": len(geoms), "max_slope_deg": params.max_slope_deg,
+            "outliers": f"|dh - {med:.4g}| > {params.coreg_params.nmad_k} x {s:.4g}",
+        },
+        "params": _jsonable(asdict(params)),
+        "histogram": {"lo": hs.lo, "hi": hs.hi, "bins": hs.bins, "median_nmad_resolution_m": (hs.hi - hs.lo) / hs.bins},
+    }
+
+    # ---- exports
+    t3 = time.perf_counter()
+    if params.cog:
+        write_cog(stored["dh"], staging / "dh.tif")
+        products["dh_tif"] = staging / "dh.tif"
+    figures = {}
+    if params.figures or params.report:
+        from tiledsm.compare.report import make_figures
+
+        figures = make_figures(stored, pair, hs, part, stats, labels, params, geoms)
+        if params.figures:
+            for name, png in figures.items():
+                (staging / f"{name}.png").write_bytes(png)
+                products[name] = staging / f"{name}.png"
+    metrics["timings_s"] = {
+        "fit": t_fit, "difference_zarr": t_diff, "statistics": t_stats,
+        "exports": time.perf_counter() - t3, "total": time.perf_counter() - t0,
+    }
+    metrics = _jsonable(metrics)
+    (staging / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    products["metrics"] = staging / "metrics.json"
+    if params.report:
+        from tiledsm.compare.report import write_report
+
+        write_report(staging / "report.html", metrics, figures)
+        products["report"] = staging / "report.html"
+    return products
