@@ -74,7 +74,7 @@ class GridSpec(_Strict):
 class MatchSpec(_Strict):
     """Dense matching parameters (see :class:`tiledsm.match.sgvll.SGVLLParams`)."""
 
-    levels: int = Field(3, ge=1, le=6)
+    levels: Optional[int] = Field(None, ge=1, le=6, description="pyramid levels; default: from the height range")
     height_range: Optional[tuple[float, float]] = None
     height_margin: float = Field(10.0, ge=0)
     relative_correction: bool = True

@@ -1,0 +1,207 @@
+"""The DSM stage against truth, across chunkings, schedulers and bad input."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+import xarray as xr
+
+from tiledsm.cluster import ClusterConfig
+from tiledsm.dsm import DSMParams, dsm_from_pair
+from tiledsm.errors import NoOverlapError, TiledsmError
+from tiledsm.geometry.grid import GroundGrid
+from tiledsm.io import open_product
+from tiledsm.pipelines import _reference_on_grid, write_dsm_products
+from tiledsm.synth import make_scene
+
+SYNC = ClusterConfig(scheduler="synchronous", progress=False)
+
+
+def nmad(d: np.ndarray) -> float:
+    d = d[np.isfinite(d)]
+    return float(1.4826 * np.median(np.abs(d - np.median(d))))
+
+
+def _compute(ds: xr.Dataset, out: Path, cluster: ClusterConfig = SYNC) -> xr.Dataset:
+    write_dsm_products(ds, out, cluster=cluster, cog=False, quicklook=False)
+    return open_product(out / "dsm.zarr").load()
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    # the issue's acceptance scene: 1024 x 1024 px, GSD 0.5 m, B/H 0.4
+    return make_scene(tmp_path_factory.mktemp("scene"), size=1024, gsd=0.5, bh=0.4, seed=3)
+
+
+@pytest.fixture(scope="module")
+def scene_dsms(scene, tmp_path_factory):
+    """The same scene on the truth grid with two chunkings."""
+    out = {}
+    for chunk in (256, 1024):
+        grid = GroundGrid.like(scene.truth_dsm, chunk=chunk)
+        ds, report = dsm_from_pair(*scene.views, grid=grid, params=DSMParams(chunk=chunk))
+        out[chunk] = _compute(ds, tmp_path_factory.mktemp(f"dsm{chunk}"))
+    return out
+
+
+def _visible(scene, like):
+    mask_path = getattr(scene, "visible_mask", None)
+    if mask_path is None:
+        return np.ones(like.shape, bool)
+    return _reference_on_grid(mask_path, like).values > 0.5
+
+
+def test_synthetic_truth_accuracy(scene, scene_dsms):
+    dsm = scene_dsms[1024]["height"]
+    truth = _reference_on_grid(scene.truth_dsm, dsm).values
+    vis = _visible(scene, dsm) & np.isfinite(truth)
+    # leave out a 2 % frame: the sensor footprint does not cover the grid's corners
+    frame = np.zeros_like(vis)
+    m = int(0.02 * vis.shape[0]) + 1
+    frame[m:-m, m:-m] = True
+    sel = vis & frame
+    d = dsm.values[sel] - truth[sel]
+    completeness = float(np.isfinite(d).mean())
+    assert nmad(d) <= 0.5, f"NMAD {nmad(d):.3f} m"
+    assert completeness >= 0.95, f"completeness {completeness:.3f}"
+
+
+def test_chunking_is_seamless(scene_dsms):
+    a = scene_dsms[256]["height"].values
+    b = scene_dsms[1024]["height"].values
+    d = np.abs(a - b)
+    assert np.nanmedian(d) <= 0.05
+    # |diff| on the chunk borders of the 256 chunking is no worse than inside
+    border = np.zeros(a.shape, bool)
+    for k in range(256, a.shape[0], 256):
+        border[k - 1 : k + 1, :] = True
+    for k in range(256, a.shape[1], 256):
+        border[:, k - 1 : k + 1] = True
+    on, off = d[border & np.isfinite(d)], d[~border & np.isfinite(d)]
+    assert np.mean(on > 0.5) <= np.mean(off > 0.5) + 0.01
+    # and the valid masks agree almost everywhere
+    assert np.mean(np.isfinite(a) != np.isfinite(b)) < 0.01
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.slow
+def test_distributed_cluster_matches_local(scene, scene_dsms, tmp_path):
+    """`dask scheduler` + two `dask worker` processes give the identical DSM."""
+    port = _free_port()
+    bindir = Path(sys.executable).parent
+    sched = subprocess.Popen(
+        [str(bindir / "dask"), "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    workers = []
+    try:
+        addr = f"tcp://127.0.0.1:{port}"
+        for _ in range(2):
+            workers.append(
+                subprocess.Popen(
+                    [str(bindir / "dask"), "worker", addr, "--nthreads", "1", "--no-dashboard"],
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                )
+            )
+        from distributed import Client
+
+        deadline = time.time() + 60
+        while True:
+            try:
+                with Client(addr, timeout=5) as c:
+                    if len(c.scheduler_info()["workers"]) == 2:
+                        break
+            except OSError:
+                pass
+            if time.time() > deadline:
+                pytest.fail("dask scheduler/workers did not start within 60 s")
+            time.sleep(0.5)
+        grid = GroundGrid.like(scene.truth_dsm, chunk=1024)
+        ds, _ = dsm_from_pair(*scene.views, grid=grid, params=DSMParams(chunk=1024))
+        remote = _compute(ds, tmp_path / "remote", ClusterConfig(scheduler=addr, progress=False))
+    finally:
+        for p in workers + [sched]:
+            p.terminate()
+        for p in workers + [sched]:
+            p.wait(timeout=30)
+    np.testing.assert_array_equal(remote["height"].values, scene_dsms[1024]["height"].values)
+
+
+def test_resume_keeps_finished_chunks(scene, tmp_path):
+    grid = GroundGrid.like(scene.truth_dsm, chunk=192)
+    params = DSMParams(chunk=192, levels=2)
+    ds, _ = dsm_from_pair(*scene.views, grid=grid, params=params)
+    out = tmp_path / "run"
+    calls = []
+
+    def crash_after_two(delayed):
+        # compute two blocks, then "crash"
+        import dask
+
+        parts = delayed if isinstance(delayed, (list, tuple)) else [delayed]
+        calls.append(len(parts))
+        dask.compute(*parts[:2], scheduler="synchronous")
+        raise KeyboardInterrupt
+
+    from tiledsm.io import write_resumable
+
+    with pytest.raises(KeyboardInterrupt):
+        write_resumable(ds, out / "dsm.zarr", compute=crash_after_two)
+    assert not (out / "dsm.zarr").exists()  # nothing under the final name
+    full = _compute(ds, out)
+    ref = _compute(ds, tmp_path / "fresh")
+    np.testing.assert_array_equal(full["height"].values, ref["height"].values)
+
+
+def test_views_without_overlap(shared_data, tmp_path):
+    a = shared_data("rpc_models", "shareloc", "wv3_20.NTF")
+    b = shared_data("rpc_models", "shareloc", "wv3_30.NTF")
+    with pytest.raises(NoOverlapError) as e:
+        ds, _ = dsm_from_pair(a, b, params=DSMParams(height_range=(0.0, 200.0)))
+    assert "wv3_20" in str(e.value) or "wv3_30" in str(e.value)
+
+
+def test_grid_outside_footprint_gives_nan_chunks(scene, tmp_path):
+    g = GroundGrid.like(scene.truth_dsm, chunk=64)
+    far = GroundGrid(g.crs, g.x0 + 50_000, g.y0, g.resolution, 128, 128, chunk=64)
+    ds, _ = dsm_from_pair(*scene.views, grid=far, params=DSMParams(chunk=64, height_range=scene.height_range))
+    out = _compute(ds, tmp_path / "far")
+    assert np.isnan(out["height"].values).all()
+
+
+def test_all_nodata_view(scene, tmp_path):
+    blank = tmp_path / "blank.tif"
+    with rasterio.open(scene.views[1]) as src:
+        profile = src.profile
+        profile.update(nodata=0)
+        rpcs = src.rpcs
+        with rasterio.open(blank, "w", **profile) as dst:
+            dst.write(np.zeros((1, src.height, src.width), src.dtypes[0]))
+            dst.rpcs = rpcs
+    grid = GroundGrid.like(scene.truth_dsm, chunk=128)
+    ds, _ = dsm_from_pair(scene.views[0], blank, grid=grid, params=DSMParams(chunk=128, height_range=scene.height_range))
+    out = _compute(ds, tmp_path / "blank")
+    assert np.isnan(out["height"].values).all()
+
+
+def test_missing_and_unreadable_inputs(scene, tmp_path):
+    with pytest.raises(TiledsmError, match="nope.tif"):
+        dsm_from_pair(scene.views[0], tmp_path / "nope.tif")
+    junk = tmp_path / "junk.tif"
+    junk.write_bytes(b"junk")
+    with pytest.raises(TiledsmError, match="junk.tif"):
+        dsm_from_pair(scene.views[0], junk)
