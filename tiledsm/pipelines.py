@@ -214,3 +214,9 @@ def run_train_sr(recipe, out: Path, cluster: ClusterConfig | None = None, overwr
     metrics = {"pipeline": "train_sr", "card": card}
     _write_json(metrics, out / "metrics.json")
     return metrics
+
+
+# Workflows chaining several stages register their recipe schema and runner on
+# import (explicit imports, no folder scanning).
+from tiledsm.workflows import deformation as _deformation  # noqa: E402,F401
+from tiledsm.workflows import sr_dsm as _sr_dsm  # noqa: E402,F401

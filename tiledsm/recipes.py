@@ -169,6 +169,8 @@ def load_recipe(path: str | Path, overrides: dict[str, Any] | None = None) -> Ba
         raise RecipeError(f"{path}: a recipe is a mapping of fields, got {type(data).__name__}")
     for key, value in (overrides or {}).items():
         data[key] = value
+    import tiledsm.pipelines  # noqa: F401  (registers the workflows' schemas)
+
     name = data.get("pipeline")
     if name not in _PIPELINES:
         raise RecipeError(f"{path}: pipeline: expected one of {sorted(_PIPELINES)}, got {name!r}")

@@ -1,0 +1,1 @@
+"""Pre/post-event deformation workflow (see tiledsm.workflows)."""

@@ -1,0 +1,1 @@
+"""Super-resolution before matching: the SR -> DSM comparison workflow (see tiledsm.workflows)."""
