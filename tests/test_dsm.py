@@ -142,8 +142,9 @@ def test_distributed_cluster_matches_local(scene, scene_dsms, tmp_path):
 
 
 def test_resume_keeps_finished_chunks(scene, tmp_path):
-    grid = GroundGrid.like(scene.truth_dsm, chunk=192)
-    params = DSMParams(chunk=192, levels=2)
+    # a 384 x 384 cell part of the scene in 3 x 3 chunks keeps the test short
+    grid = GroundGrid.like(scene.truth_dsm, chunk=128).subgrid(320, 704, 320, 704)
+    params = DSMParams(chunk=128, levels=2)
     ds, _ = dsm_from_pair(*scene.views, grid=grid, params=params)
     out = tmp_path / "run"
     calls = []
@@ -205,3 +206,64 @@ def test_missing_and_unreadable_inputs(scene, tmp_path):
     junk.write_bytes(b"junk")
     with pytest.raises(TiledsmError, match="junk.tif"):
         dsm_from_pair(scene.views[0], junk)
+
+
+def test_heights_above_geoid_match_proj_vgridshift(shared_data, scene):
+    """Geoid heights against PROJ's own vertical grid shift with the same grid."""
+    from pyproj import Transformer
+
+    from tiledsm.dsm import heights_above_geoid
+
+    gtx = shared_data("shareloc_phr_ventoux", "geoid", "egm96_15.gtx")
+    grid = GroundGrid.like(scene.truth_dsm, chunk=96)
+    h = np.full(grid.shape, 500.0, np.float32)
+    ds = xr.Dataset({"height": (("y", "x"), h)}, coords={"y": grid.y, "x": grid.x}).chunk(96)
+    ds = ds.rio.write_crs(grid.crs)
+    out = heights_above_geoid(ds, gtx)["height"].values
+    X, Y = np.meshgrid(grid.x, grid.y)
+    lon, lat = Transformer.from_crs(grid.crs, "EPSG:4326", always_xy=True).transform(X, Y)
+    # PROJ's vgridshift adds multiplier * N going forward: -1 takes N off
+    shift = Transformer.from_pipeline(f"+proj=vgridshift +grids={gtx} +multiplier=-1")
+    _, _, H = shift.transform(np.radians(lon), np.radians(lat), h.astype(np.float64), radians=True)
+    assert np.isfinite(out).all()
+    np.testing.assert_allclose(out, H, atol=1e-3)
+    assert 40 < np.mean(500.0 - out) < 60  # N is about +50 m in Provence
+
+
+def test_geoid_grid_missing_fails_before_running(scene, tmp_path):
+    from tiledsm.dsm import heights_above_geoid
+    from tiledsm.errors import InputFileError
+
+    grid = GroundGrid.like(scene.truth_dsm, chunk=128)
+    ds = xr.Dataset({"height": (("y", "x"), np.zeros(grid.shape, np.float32))}, coords={"y": grid.y, "x": grid.x})
+    with pytest.raises(InputFileError, match="nope.gtx"):
+        heights_above_geoid(ds.rio.write_crs(grid.crs), tmp_path / "nope.gtx")
+
+
+@pytest.mark.slow
+@pytest.mark.realdata
+def test_cli_dsm_s2p_pair_against_s2p(shared_data, tmp_path):
+    """The user's command on the real Pleiades pair, on s2p's grid, in chunks of
+    256 cells (seams would show), scored here with rasterio alone."""
+    from tiledsm.cli import main
+
+    imgs = [str(shared_data("s2p_pair", "input_pair", n)) for n in ("img_01.tif", "img_02.tif")]
+    ref_path = shared_data("s2p_pair", "expected_output", "pair", "dsm.tif")
+    out = tmp_path / "s2p"
+    argv = ["dsm", *imgs, "--out", str(out), "--like", str(ref_path), "--reference", str(ref_path)]
+    assert main(argv + ["--chunk", "256", "--workers", "2", "--no-progress"]) == 0
+    with rasterio.open(out / "dsm.tif") as a, rasterio.open(ref_path) as b:
+        assert a.crs == b.crs and a.transform == b.transform and a.shape == b.shape
+        dsm, ref = a.read(1, masked=True).filled(np.nan), b.read(1, masked=True).filled(np.nan)
+    both = np.isfinite(ref)
+    d = dsm[both] - ref[both]
+    completeness = float(np.isfinite(d).mean())
+    # issue bounds: NMAD <= 0.5 m, completeness >= 90 % without hole filling
+    assert nmad(d) <= 0.5, nmad(d)
+    assert completeness >= 0.90, completeness
+    assert abs(np.nanmedian(d)) < 0.2
+    import json
+
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["vs_reference"]["nmad"] == pytest.approx(nmad(d), abs=1e-3)
+    assert (out / "dsm.png").stat().st_size > 10_000

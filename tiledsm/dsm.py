@@ -36,7 +36,17 @@ from tiledsm.match.sgvll import SGVLLParams
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DSMParams", "View", "open_views", "scene_height_range", "default_grid", "dsm_from_views", "dsm_from_pair"]
+__all__ = [
+    "DSMParams",
+    "View",
+    "open_views",
+    "scene_height_range",
+    "default_grid",
+    "dsm_from_views",
+    "dsm_from_pair",
+    "heights_above_geoid",
+    "footprint_mask",
+]
 
 
 @dataclass(frozen=True)
@@ -454,3 +464,65 @@ def dsm_from_pair(
         grid = default_grid(views, h_range, params)
     report["grid"] = {"crs": grid.crs, "resolution": grid.resolution, "width": grid.width, "height": grid.height, "chunk": grid.chunk}
     return dsm_from_views(views, grid, h_range, params), report
+
+
+# ------------------------------------------------------------------ products
+def _geoid_block(height: np.ndarray, x: np.ndarray, y: np.ndarray, crs: str, geoid: str, block_info=None) -> np.ndarray:
+    from tiledsm.geometry.footprint import to_lonlat
+    from tiledsm.geometry.geoid import geoid_height
+
+    (r0, r1), (c0, c1) = block_info[0]["array-location"]
+    X, Y = np.meshgrid(x[c0:c1], y[r0:r1])
+    lon, lat = to_lonlat(crs, X, Y)
+    return (height - geoid_height(lon, lat, geoid)).astype(np.float32)
+
+
+def heights_above_geoid(ds: xr.Dataset, geoid: str | Path) -> xr.Dataset:
+    """The DSM with heights above the geoid of ``geoid`` instead of the
+    WGS84 ellipsoid: ``H = h - N(lon, lat)``, chunk by chunk (lazy).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        Output of :func:`dsm_from_views` (``height`` in ellipsoidal metres,
+        CRS written).
+    geoid : path
+        Geoid grid read by GDAL, e.g. EGM96 ``egm96_15.gtx``
+        (see :mod:`tiledsm.geometry.geoid`).
+
+    Raises
+    ------
+    InputFileError
+        The grid is missing or unreadable (checked before anything runs).
+    """
+    from tiledsm.geometry.geoid import _load
+
+    geoid = str(Path(geoid))
+    _load(geoid)  # fail now, not inside a task
+    h = ds["height"]
+    data = da.map_blocks(
+        _geoid_block, h.data, x=h.x.values, y=h.y.values, crs=ds.rio.crs.to_string(), geoid=geoid, dtype=np.float32
+    )
+    out = ds.copy()
+    out["height"] = h.copy(data=data)
+    out["height"].attrs.update(long_name=f"height above the geoid ({Path(geoid).name})", vertical_datum=Path(geoid).name)
+    out.attrs["vertical_datum"] = f"geoid {Path(geoid).name}"
+    return out
+
+
+def footprint_mask(grid: GroundGrid, views: Sequence[View], height: float, step: int = 1) -> np.ndarray:
+    """Cells of ``grid`` (every ``step``-th row and column) whose centre at
+    ``height`` (ellipsoidal metres) projects inside every view.
+
+    This is where a DSM can have heights at all: completeness is measured
+    inside it.
+    """
+    from tiledsm.geometry.footprint import to_lonlat
+
+    X, Y = np.meshgrid(grid.x[::step], grid.y[::step])
+    lon, lat = to_lonlat(grid.crs, X, Y)
+    inside = np.ones(X.shape, bool)
+    for v in views:
+        r, c = v.rpc.project(lon, lat, height)
+        inside &= (r >= 0) & (r < v.shape[0]) & (c >= 0) & (c < v.shape[1])
+    return inside

@@ -171,6 +171,11 @@ def run_dsm(recipe: DSMRecipe, out: Path, cluster: ClusterConfig | None = None, 
         match=SGVLLParams(**m.params),
     )
     ds, report = dsm_from_pair(*images, rpcs=rpcs, grid=grid, params=params)
+    if recipe.output.geoid:
+        from tiledsm.dsm import heights_above_geoid
+
+        ds = heights_above_geoid(ds, recipe.output.geoid)
+        report["vertical_datum"] = ds.attrs["vertical_datum"]
     timings = write_dsm_products(
         ds, out, cluster=cluster, cog=recipe.output.cog, quicklook=recipe.output.quicklook, overwrite=overwrite
     )
@@ -179,6 +184,7 @@ def run_dsm(recipe: DSMRecipe, out: Path, cluster: ClusterConfig | None = None, 
 
     height = open_product(out / "dsm.zarr")["height"]
     metrics["completeness"] = float(np.isfinite(height.values).mean())
+    metrics["completeness_in_footprint"] = _footprint_completeness(height, images, rpcs, report["height_range_m"])
     if reference:
         ref = _reference_on_grid(reference, height)
         metrics["reference"] = str(reference)
@@ -191,6 +197,20 @@ def run_dsm(recipe: DSMRecipe, out: Path, cluster: ClusterConfig | None = None, 
     _write_json(metrics, out / "metrics.json")
     log.info("metrics: %s", json.dumps(metrics))
     return metrics
+
+
+def _footprint_completeness(height: xr.DataArray, images, rpcs, h_range) -> float:
+    """Fraction of the cells seen by every view that have a height (cells
+    sampled every ``step`` rows/columns so at most ~1 M are projected)."""
+    from tiledsm.dsm import footprint_mask, open_views
+    from tiledsm.geometry.grid import GroundGrid
+
+    grid = GroundGrid.like(height)
+    step = max(1, int(np.ceil(np.sqrt(height.size / 1e6))))
+    views = open_views(images, rpcs)
+    inside = footprint_mask(grid, views, float(np.mean(h_range)), step)
+    sample = np.isfinite(height.values[::step, ::step])
+    return float(sample[inside].mean()) if inside.any() else 0.0
 
 
 def _write_json(obj: dict, path: Path) -> None:

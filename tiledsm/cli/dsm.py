@@ -26,7 +26,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--chunk", type=int, default=512, help="chunk side, cells")
     p.add_argument("--levels", type=int, default=None, help="pyramid levels (default: from the height range)")
     p.add_argument("--height-range", type=float, nargs=2, default=None, metavar=("HMIN", "HMAX"), help="ellipsoidal metres; default: from tie points")
-    p.add_argument("--reference", default=None, help="reference DSM for metrics")
+    p.add_argument("--reference", default=None, help="reference DSM for metrics (same vertical datum as the output)")
+    p.add_argument("--geoid", default=None, help="geoid grid (e.g. egm96_15.gtx): write heights above the geoid instead of the WGS84 ellipsoid")
     add_cluster_arguments(p)
     p.set_defaults(func=run)
 
@@ -49,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
                 if v is not None
             },
             "match": {"levels": args.levels, "height_range": args.height_range},
+            "output": {"geoid": str(Path(args.geoid).resolve()) if args.geoid else None},
         }
     )
     metrics = run_recipe(recipe, args.out, cluster_config(args))
