@@ -1,0 +1,139 @@
+"""Benchmark the DSM stage: wall time, output Mcells/s, peak memory, 1 vs 2 workers.
+
+Cases (each run as the user runs it, ``tiledsm dsm ...``, in a fresh process tree
+measured by :mod:`benchmarks._measure`):
+
+- ``s2p``: the real Pleiades pair ``../shared/data/s2p_pair`` on s2p's own grid
+  (``--like expected_output/pair/dsm.tif``: 721 x 739 cells of 0.5 m), scored
+  against s2p's DSM (NMAD, completeness);
+- ``synth<N>``: a synthetic N x N px scene (GSD 0.5 m, B/H 0.4, made once by
+  ``tiledsm synth`` into the run folder and reused), on its truth grid, scored
+  against the truth on visible ground.
+
+For every case and worker count: wall time of the whole command, the DSM
+stage's own matching time (``timings.match_s`` of ``metrics.json``), output
+Mcells per second of matching, peak memory of the largest single process
+(``peak_single_rss_mib``: a worker or the client) and of the whole tree
+(PSS, shared pages split), and the speed-up of 2 workers over 1 measured in
+the same run. Load averages before and after each measurement are recorded:
+on a shared machine other work stretches wall times.
+
+Usage::
+
+    nice -n 10 .venv/bin/python benchmarks/dsm.py [--cases s2p synth4096] [--workers 1 2]
+
+Writes ``benchmarks/results/dsm.json`` and prints a markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import os
+import platform
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from benchmarks._measure import measure  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+DATA = REPO.parent / "shared" / "data"
+TILEDSM = Path(sys.executable).parent / "tiledsm"
+
+
+def _case_s2p(run_dir: Path) -> tuple[list[str], dict]:
+    pair = DATA / "s2p_pair"
+    if not pair.exists():
+        raise SystemExit(f"{pair}: shared data not found (expected ../shared/data beside the repository)")
+    ref = pair / "expected_output" / "pair" / "dsm.tif"
+    images = [str(pair / "input_pair" / n) for n in ("img_01.tif", "img_02.tif")]
+    return images + ["--like", str(ref), "--reference", str(ref)], {"data": str(pair), "reference": "s2p DSM"}
+
+
+def _case_synth(run_dir: Path, size: int) -> tuple[list[str], dict]:
+    scene = run_dir / f"scene{size}"
+    if not (scene / "truth_dsm.tif").exists():
+        m = measure([str(TILEDSM), "synth", str(scene), "--size", str(size), "--gsd", "0.5", "--bh", "0.4", "--seed", "0"],
+                    log=run_dir / f"synth{size}.log")
+        if not m.ok:
+            raise SystemExit(f"tiledsm synth failed, see {run_dir / f'synth{size}.log'}")
+    images = sorted(str(p) for p in scene.glob("view_*.tif"))
+    truth = str(scene / "truth_dsm.tif")
+    return images + ["--like", truth, "--reference", truth], {"data": f"synthetic {size}x{size} px", "reference": "truth"}
+
+
+def run_case(name: str, workers: int, run_dir: Path, chunk: int, timeout: float) -> dict:
+    args, info = _case_s2p(run_dir) if name == "s2p" else _case_synth(run_dir, int(name.removeprefix("synth")))
+    out = run_dir / f"{name}_w{workers}"
+    argv = [str(TILEDSM), "dsm", *args, "--out", str(out), "--workers", str(workers), "--chunk", str(chunk), "--no-progress"]
+    m = measure(argv, log=run_dir / f"{name}_w{workers}.log", timeout=timeout)
+    row = {"case": name, "workers": workers, "chunk": chunk, **info, "measurement": m.to_dict()}
+    if m.ok:
+        metrics = json.loads((out / "metrics.json").read_text())
+        ref = metrics.get("vs_reference", {})
+        cells = metrics["report"]["grid"]["width"] * metrics["report"]["grid"]["height"]
+        row.update(
+            cells=cells,
+            match_s=metrics["timings"]["match_s"],
+            mcells_per_s=cells / 1e6 / metrics["timings"]["match_s"],
+            nmad_m=ref.get("nmad"),
+            completeness=ref.get("completeness"),
+            completeness_in_footprint=metrics.get("completeness_in_footprint"),
+        )
+    return row
+
+
+def format_table(rows: list[dict]) -> str:
+    head = "| case | workers | cells | wall (s) | match (s) | Mcells/s | speed-up vs 1 | peak process (MiB) | tree PSS (MiB) | NMAD (m) | completeness |"
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    base = {r["case"]: r for r in rows if r["workers"] == 1 and "match_s" in r}
+    for r in rows:
+        m = r["measurement"]
+        if "match_s" not in r:
+            lines.append(f"| {r['case']} | {r['workers']} | failed (rc {m['returncode']}) |||||||||")
+            continue
+        b = base.get(r["case"])
+        speed = f"{b['match_s'] / r['match_s']:.2f}" if b else "-"
+        lines.append(
+            f"| {r['case']} | {r['workers']} | {r['cells'] / 1e6:.2f} M | {m['wall_s']:.1f} | {r['match_s']:.1f} | "
+            f"{r['mcells_per_s']:.3f} | {speed} | {m['peak_single_rss_mib']:.0f} | {m['peak_pss_mib'] or float('nan'):.0f} | "
+            f"{r['nmad_m']:.3f} | {r['completeness']:.3f} |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cases", nargs="+", default=["s2p", "synth4096"], help="s2p and/or synth<N>")
+    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--chunk", type=int, default=512)
+    ap.add_argument("--run-dir", default=str(REPO / "runs" / "bench_dsm"))
+    ap.add_argument("--timeout", type=float, default=3600)
+    ap.add_argument("--json", default=str(REPO / "benchmarks" / "results" / "dsm.json"))
+    args = ap.parse_args(argv)
+    run_dir = Path(args.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for case in args.cases:
+        for w in args.workers:
+            rows.append(run_case(case, w, run_dir, args.chunk, args.timeout))
+            print(format_table(rows[-1:]).splitlines()[-1], flush=True)
+    table = format_table(rows)
+    print(table)
+    result = {
+        "benchmark": "dsm",
+        "when": _dt.datetime.now().isoformat(timespec="seconds"),
+        "host": {"machine": platform.machine(), "cpus": os.cpu_count(), "python": platform.python_version()},
+        "rows": rows,
+        "table": table,
+    }
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps(result, indent=1, default=str))
+    print(f"wrote {args.json}")
+    return 0 if all("match_s" in r for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
