@@ -183,7 +183,8 @@ def run_dsm(recipe: DSMRecipe, out: Path, cluster: ClusterConfig | None = None, 
     from tiledsm.io import open_product
 
     height = open_product(out / "dsm.zarr")["height"]
-    metrics["completeness"] = float(np.isfinite(height.values).mean())
+    # lazy: the client never holds the whole DSM for this
+    metrics["completeness"] = float(np.isfinite(height.data).mean().compute())
     metrics["completeness_in_footprint"] = _footprint_completeness(height, images, rpcs, report["height_range_m"])
     if reference:
         ref = _reference_on_grid(reference, height)
