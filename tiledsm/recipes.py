@@ -181,7 +181,7 @@ def load_recipe(path: str | Path, overrides: dict[str, Any] | None = None) -> Ba
         raise RecipeError(_format_errors(path, exc)) from None
 
 
-_PATH_KEYS = {"images", "rpcs", "reference", "like", "geoid", "stable_mask", "pre", "post", "dem"}
+_PATH_KEYS = {"images", "rpcs", "reference", "like", "geoid", "stable_mask", "pre", "post", "dem", "truth_dh", "truth_mask"}
 
 
 def _resolve_paths(data: Any, base: Path, key: str | None = None) -> Any:

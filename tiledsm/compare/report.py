@@ -61,6 +61,8 @@ def make_figures(stored, pair, hs, part, stats, labels, params, geoms=()) -> dic
         for poly in polys:
             ring = np.asarray(poly[0])
             ax.plot(ring[:, 0], ring[:, 1], "k-", lw=1.0)
+    ax.set_xlim(b[0], b[2])  # polygons reaching beyond the grid must not shrink the map
+    ax.set_ylim(b[1], b[3])
     fig.colorbar(im, ax=ax, label="dh = other - ref (m)", shrink=0.8)
     ax.set_title(f"dh after co-registration ({params.coreg}); black: excluded areas")
     ax.set_xlabel(f"x ({pair.crs.to_string()})")

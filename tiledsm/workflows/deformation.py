@@ -1,1 +1,591 @@
-"""Pre/post-event deformation workflow (see tiledsm.workflows)."""
+"""Pre/post-event deformation workflow: two stereo pairs -> two DSMs on one
+grid -> co-registered difference -> vertical displacement and fault throw.
+
+``pipeline: deformation`` (see :class:`DeformationRecipe`) writes into the
+run folder ``OUT``:
+
+- ``pre/`` and ``post/``: the DSM products of each pair (``dsm.zarr``,
+  ``dsm.tif``, ``dsm.png``, resumable), the post DSM on **the pre DSM's
+  ground grid** (same CRS, transform and shape: no resampling in the
+  difference);
+- ``compare/``: the products of :func:`tiledsm.compare.compare_dsms`
+  (``dh.zarr``, ``dh.tif``, quick-looks, ``report.html``, its
+  ``metrics.json``) with ``dh = post_corrected - pre`` (metres);
+- ``metrics.json``: the DSM reports, the co-registration found, stable
+  terrain statistics, the throw measured across the fault trace (when one is
+  known) and, with a known truth, the errors of the recovered ``dh``;
+- ``scene/`` (synthetic input): the scene of :func:`tiledsm.synth.make_scene`
+  and ``stable_mask.geojson`` (the exclusion polygons written from the known
+  event).
+
+Conventions
+-----------
+Heights and ``dh`` in metres (ellipsoidal for both DSMs, so ``dh`` is
+datum-free). The fault trace is oriented: its *right* side (looking along
+the trace from its first to its last point) is the block whose ``dh`` minus
+the left block's is the reported throw (positive: the right block went up
+relative to the left one). For a synthetic event this is the convention of
+:class:`tiledsm.synth.EventParams` (strike and right-hand normal).
+
+Throw measure: ``median(dh)`` over valid cells at ``strip[0]..strip[1]``
+metres on the right of the trace minus the same on the left (cells closer
+than ``strip[0]`` are left out: the matching window smooths the step there).
+With a truth, the same measure on the truth ``dh`` over the same cells is
+the truth throw, so the error compares like with like.
+
+Reference frame of the truth: co-registration aligns the post DSM on the
+terrain declared stable, so ``dh`` is displacement *relative to that
+terrain*. When the "stable" terrain itself moved (in the synthetic event
+both blocks move by ``+-throw/2`` and ``+-slip/2``: nothing is still), the
+truth is expressed in the same frame: the expected co-registration is minus
+the median truth displacement ``(dx, dy, dz)`` over the stable cells, and the
+truth ``dh`` is ``shift(post_truth, expected) + expected_dz - pre_truth``.
+With ``coreg: none`` (or a truly still stable terrain) the expected
+co-registration is zero and this is the plain truth ``dh``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Literal, Optional
+
+import numpy as np
+from pydantic import Field, field_validator, model_validator
+
+from tiledsm.errors import NoOverlapError, TiledsmError
+from tiledsm.recipes import ClusterSpec, GridSpec, MatchSpec, OutputSpec, SynthInput, _Strict, register_recipe
+
+__all__ = ["DeformationRecipe", "run_deformation", "throw_across", "Fault"]
+
+log = logging.getLogger("tiledsm.workflows.deformation")
+
+
+# --------------------------------------------------------------------------- recipe schema
+class PairInput(_Strict):
+    """One stereo pair (or more views) of one epoch: images with RPCs in their
+    tags, a sidecar, or ``rpcs`` (one entry per image, ``null`` allowed)."""
+
+    images: list[str] = Field(..., min_length=2)
+    rpcs: Optional[list[Optional[str]]] = None
+
+    @model_validator(mode="after")
+    def _one_rpc_per_image(self):
+        if self.rpcs is not None and len(self.rpcs) != len(self.images):
+            raise ValueError("'rpcs' needs one entry per image")
+        return self
+
+
+class EventSynthInput(SynthInput):
+    """A synthetic pre/post-event scene (:func:`tiledsm.synth.make_scene`
+    with ``event=True``)."""
+
+    event: bool = True
+    auto_stable_mask: bool = Field(
+        True,
+        description="write stable_mask.geojson from the known event (fault zone, uplift and the block holding "
+        "the uplift excluded) when compare.stable_mask is not given",
+    )
+
+    @field_validator("event")
+    @classmethod
+    def _needs_event(cls, value: bool) -> bool:
+        if not value:
+            raise ValueError("a deformation run needs the post-event scene: event must be true")
+        return value
+
+
+class DeformationInput(_Strict):
+    """Either ``synth`` (known truth) or the ``pre`` and ``post`` pairs."""
+
+    synth: Optional[EventSynthInput] = None
+    pre: Optional[PairInput] = None
+    post: Optional[PairInput] = None
+    truth_dh: Optional[str] = Field(None, description="reference dh raster (post - pre, metres) for the metrics")
+    truth_mask: Optional[str] = Field(None, description="uint8 raster, 1 where truth_dh is evaluated")
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        pairs = (self.pre is not None, self.post is not None)
+        if self.synth is not None and any(pairs):
+            raise ValueError("give either 'synth' or the 'pre' and 'post' pairs, not both")
+        if self.synth is None and not all(pairs):
+            raise ValueError("give 'synth' (a synthetic event) or both 'pre' and 'post' pairs")
+        if self.synth is not None and (self.truth_dh or self.truth_mask):
+            raise ValueError("'truth_dh'/'truth_mask' come from the synthetic scene; leave them out with 'synth'")
+        if self.truth_mask and not self.truth_dh:
+            raise ValueError("'truth_mask' needs 'truth_dh'")
+        return self
+
+
+class FaultSpec(_Strict):
+    """Fault trace across which the throw is measured (real inputs; a
+    synthetic event knows its own); the strips are ``compare.strip``."""
+
+    trace: list[tuple[float, float]] = Field(
+        ..., min_length=2, max_length=2, description="two (lon, lat) points, WGS84 degrees; right side = up is positive"
+    )
+
+
+class CompareSpec(_Strict):
+    """Comparison stage (see :class:`tiledsm.compare.CompareParams`)."""
+
+    coreg: str = Field("nuth_kaab", description="co-registration method: 'nuth_kaab' or 'none'")
+    stable_mask: Optional[str] = Field(None, description="GeoJSON of areas excluded from stable terrain (rupture zone)")
+    deramp: bool = False
+    chunk: int = Field(512, ge=16, description="chunk side of the comparison grid, cells")
+    strip: tuple[float, float] = Field((3.0, 20.0), description="throw strips: inner and outer distance to the fault trace, metres")
+
+    @field_validator("coreg")
+    @classmethod
+    def _known_method(cls, value: str) -> str:
+        from tiledsm.compare.coreg import COREG_METHODS
+
+        if value not in COREG_METHODS:
+            raise ValueError(f"unknown co-registration method {value!r}; known: {sorted(COREG_METHODS)}")
+        return value
+
+    @field_validator("strip")
+    @classmethod
+    def _ordered(cls, value):
+        if not 0 <= value[0] < value[1]:
+            raise ValueError(f"need 0 <= inner < outer, got {value}")
+        return value
+
+
+class DeformationRecipe(_Strict):
+    """``pipeline: deformation`` — pre and post pairs to a vertical
+    displacement map, co-registered on stable terrain, with the throw."""
+
+    pipeline: Literal["deformation"]
+    name: str = "deformation"
+    input: DeformationInput
+    fault: Optional[FaultSpec] = None
+    grid: GridSpec = GridSpec()
+    match: MatchSpec = MatchSpec()
+    compare: CompareSpec = CompareSpec()
+    cluster: ClusterSpec = ClusterSpec()
+    output: OutputSpec = OutputSpec()
+
+    @model_validator(mode="after")
+    def _fault_source(self):
+        if self.fault is not None and self.input.synth is not None:
+            raise ValueError("'fault' is known for a synthetic event; leave it out with 'input.synth'")
+        return self
+
+
+register_recipe("deformation", DeformationRecipe)
+
+
+# --------------------------------------------------------------------------- pure helpers
+class Fault:
+    """A straight fault trace in a projected CRS (metres).
+
+    Parameters
+    ----------
+    point : (float, float)
+        A point of the trace, CRS x/y.
+    strike : (float, float)
+        Direction of the trace (normalised here); the right-hand normal
+        ``(sy, -sx)`` points to the "right" block.
+    """
+
+    def __init__(self, point, strike):
+        self.point = np.asarray(point, np.float64)
+        s = np.asarray(strike, np.float64)
+        self.strike = s / np.hypot(*s)
+        self.normal = np.array([self.strike[1], -self.strike[0]])
+
+    def signed_distance(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Metres from the trace, positive on the right block, for cell
+        centres ``x`` (columns) by ``y`` (rows)."""
+        x = np.asarray(x, np.float64)[None, :]
+        y = np.asarray(y, np.float64)[:, None]
+        return (x - self.point[0]) * self.normal[0] + (y - self.point[1]) * self.normal[1]
+
+    def to_dict(self) -> dict:
+        return {"point": self.point.tolist(), "strike": self.strike.tolist(), "normal_right": self.normal.tolist()}
+
+
+def throw_across(dh: np.ndarray, distance: np.ndarray, strip: tuple[float, float], valid: np.ndarray | None = None) -> dict:
+    """Robust vertical offset across a fault trace.
+
+    Parameters
+    ----------
+    dh : ndarray
+        Height change, metres (NaN = none).
+    distance : ndarray
+        Signed distance of each cell to the trace, metres (positive: right).
+    strip : (float, float)
+        Inner and outer distance of the two strips, metres.
+    valid : ndarray of bool, optional
+        Cells allowed (e.g. visible ground).
+
+    Returns
+    -------
+    dict
+        ``throw`` (median right minus median left, metres), ``right``,
+        ``left`` (the medians) and ``n_right``, ``n_left`` (cells used).
+    """
+    ok = np.isfinite(dh) if valid is None else (np.asarray(valid, bool) & np.isfinite(dh))
+    a = np.abs(distance)
+    band = ok & (a >= strip[0]) & (a <= strip[1])
+    right, left = band & (distance > 0), band & (distance < 0)
+    if not right.any() or not left.any():
+        raise TiledsmError(
+            f"throw: no valid dh in the strips {strip[0]}-{strip[1]} m on the "
+            f"{'right' if not right.any() else 'left'} of the fault trace (does the trace cross the grid?)"
+        )
+    r, l_ = float(np.median(dh[right])), float(np.median(dh[left]))
+    return {"throw": r - l_, "right": r, "left": l_, "n_right": int(right.sum()), "n_left": int(left.sum())}
+
+
+def error_stats(err: np.ndarray) -> dict:
+    """RMSE, mean, median, NMAD and 95th percentile of ``|err|`` (metres)."""
+    err = np.asarray(err, np.float64)
+    if err.size == 0:
+        return {"count": 0}
+    med = float(np.median(err))
+    return {
+        "count": int(err.size),
+        "rmse": float(np.sqrt(np.mean(err**2))),
+        "mean": float(np.mean(err)),
+        "median": med,
+        "nmad": float(1.4826 * np.median(np.abs(err - med))),
+        "le95": float(np.percentile(np.abs(err), 95)),
+    }
+
+
+def _polygon_feature(ring, name: str) -> dict:
+    return {"type": "Feature", "properties": {"name": name},
+            "geometry": {"type": "Polygon", "coordinates": [[[float(x), float(y)] for x, y in ring]]}}
+
+
+def event_exclusion_polygons(event, origin, extent: float, uplift_tol: float = 0.05) -> tuple[list[dict], int]:
+    """Exclusion polygons (GeoJSON features, scene CRS) for a synthetic event.
+
+    Excluded: a fault-zone strip (half width ``max(10 m, 5 % of extent)``),
+    the disk where the uplift exceeds ``uplift_tol`` metres, and the whole
+    block holding the uplift centre — so the stable terrain left is the
+    other block, which moved rigidly.
+
+    Returns
+    -------
+    features, kept_side
+        ``kept_side`` is +1 when the right block is kept, -1 for the left.
+    """
+    p = np.asarray(event.fault_point, float) + np.asarray(origin, float)
+    s, n = event.strike, event.normal
+    big = 2.0 * extent  # reaches past the scene from any point of it
+    half = max(10.0, 0.05 * extent)
+    feats = [_polygon_feature([p - big * s - half * n, p + big * s - half * n, p + big * s + half * n,
+                               p - big * s + half * n, p - big * s - half * n], "fault zone")]
+    uc = np.asarray(event.uplift_center, float)
+    side_uplift = 1 if float(np.dot(uc - np.asarray(event.fault_point, float), n)) >= 0 else -1
+    kept = -side_uplift
+    if abs(event.uplift) > uplift_tol:
+        r = event.uplift_sigma * math.sqrt(2.0 * math.log(abs(event.uplift) / uplift_tol))
+        c = uc + np.asarray(origin, float)
+        t = np.linspace(0.0, 2 * math.pi, 65)
+        feats.append(_polygon_feature(np.column_stack([c[0] + r * np.cos(t), c[1] + r * np.sin(t)]), "uplift"))
+    m = side_uplift * n
+    feats.append(_polygon_feature([p - big * s, p + big * s, p + big * s + big * m, p - big * s + big * m, p - big * s],
+                                  "block holding the uplift"))
+    return feats, kept
+
+
+def _write_geojson(features: list[dict], crs: str, path: Path) -> Path:
+    from tiledsm.io import atomic_path
+
+    doc = {"type": "FeatureCollection", "crs": {"type": "name", "properties": {"name": crs}}, "features": features}
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(json.dumps(doc, indent=1))
+    return path
+
+
+# --------------------------------------------------------------------------- truth metrics
+def _on_grid(path, like, *, nearest: bool = False) -> np.ndarray:
+    """A raster's values on the grid of ``like`` (float64)."""
+    from tiledsm.pipelines import _reference_on_grid
+
+    if nearest:
+        import rioxarray  # noqa: F401
+        import xarray as xr
+        from rasterio.enums import Resampling
+
+        ref = xr.open_dataarray(path, engine="rasterio", mask_and_scale=True).squeeze("band", drop=True)
+        if not (ref.shape == like.shape and np.allclose(ref.rio.transform(), like.rio.transform())):
+            ref = ref.rio.reproject_match(like, resampling=Resampling.nearest)
+        return np.asarray(ref.values, np.float64)
+    return np.asarray(_reference_on_grid(path, like).values, np.float64)
+
+
+def expected_coregistration(stable: np.ndarray, dx: np.ndarray, dy: np.ndarray, dz: np.ndarray, res: float) -> dict:
+    """The co-registration that would align the post surface on the stable
+    cells, from the truth displacement (see the module notes).
+
+    ``dx, dy`` metres east/north, ``dz`` metres; ``res`` metres per cell of
+    a north-up grid. Returns ``dx_px, dy_px, dz`` in the signs of
+    :class:`tiledsm.compare.Coregistration` (correction applied to post).
+    """
+    if not stable.any():
+        return {"dx_px": 0.0, "dy_px": 0.0, "dz": 0.0, "n_cells": 0}
+    return {
+        "dx_px": -float(np.median(dx[stable])) / res,
+        "dy_px": float(np.median(dy[stable])) / res,
+        "dz": -float(np.median(dz[stable])),
+        "n_cells": int(stable.sum()),
+    }
+
+
+def _synthetic_truth(scene, like, coreg_expected: dict):
+    """Truth ``dh`` in the co-registration frame and the evaluation masks.
+
+    Returns ``(truth_dh, visible, visible_ground)`` on the grid of ``like``.
+    """
+    from tiledsm.compare.coreg import shift_array
+
+    ev = scene.event
+    dy_px, dx_px, dz = coreg_expected["dy_px"], coreg_expected["dx_px"], coreg_expected["dz"]
+    pre = _on_grid(scene.truth_dsm, like)
+    post = _on_grid(ev["post_dsm"], like)
+    vis = _on_grid(scene.visible_mask, like, nearest=True) > 0.5
+    pvis = _on_grid(ev["post_visible"], like, nearest=True)
+    lab = _on_grid(scene.truth_label, like, nearest=True)
+    plab = _on_grid(ev["post_label"], like, nearest=True)
+    if dx_px or dy_px:
+        post = shift_array(post, dy_px, dx_px, "cubic").astype(np.float64)
+        # masks: linear weights; a cell counts only when all its support does
+        pvis = shift_array(pvis, dy_px, dx_px, "linear")
+        plab = shift_array((plab == 0).astype(np.float32), dy_px, dx_px, "linear")
+        pground = plab > 0.999
+    else:
+        pground = plab == 0
+    truth = post + dz - pre
+    visible = vis & (np.nan_to_num(pvis) > 0.999) & np.isfinite(truth)
+    return truth, visible, visible & (lab == 0) & pground
+
+
+# --------------------------------------------------------------------------- runner
+def _grid_lonlat_box(grid) -> tuple[float, float, float, float]:
+    from pyproj import Transformer
+
+    left, bottom, right, top = grid.bounds
+    tr = Transformer.from_crs(grid.crs, "EPSG:4326", always_xy=True)
+    xs = np.array([left, right, left, right, (left + right) / 2, (left + right) / 2, left, right])
+    ys = np.array([bottom, bottom, top, top, bottom, top, (bottom + top) / 2, (bottom + top) / 2])
+    lon, lat = tr.transform(xs, ys)
+    return float(np.min(lon)), float(np.min(lat)), float(np.max(lon)), float(np.max(lat))
+
+
+def _check_post_sees_grid(images, rpcs, h_range, grid, pre_images) -> None:
+    """Refuse, before anything is computed, a post pair that sees none of the pre grid."""
+    from tiledsm.dsm import open_views
+    from tiledsm.geometry.footprint import overlap_lonlat_bounds
+
+    views = open_views(images, rpcs)
+    try:
+        lon0, lat0, lon1, lat1 = overlap_lonlat_bounds(views[0].rpc, views[0].shape, views[1].rpc, views[1].shape, h_range)
+    except NoOverlapError:
+        raise NoOverlapError(f"post-event views {', '.join(map(str, images))} have no ground in common") from None
+    g0, g1, g2, g3 = _grid_lonlat_box(grid)
+    if lon0 >= g2 or lon1 <= g0 or lat0 >= g3 or lat1 <= g1:
+        raise NoOverlapError(
+            f"post-event views {', '.join(map(str, images))} see no ground of the pre-event DSM grid "
+            f"(pre-event views {', '.join(map(str, pre_images))}): post footprint lon/lat "
+            f"[{lon0:.5f}, {lat0:.5f}, {lon1:.5f}, {lat1:.5f}], pre grid [{g0:.5f}, {g1:.5f}, {g2:.5f}, {g3:.5f}]"
+        )
+
+
+def _dsm_params(recipe: DeformationRecipe):
+    from tiledsm.dsm import DSMParams
+    from tiledsm.match.sgvll import SGVLLParams
+
+    g, m = recipe.grid, recipe.match
+    return DSMParams(
+        resolution=g.resolution, chunk=g.chunk, levels=m.levels, height_range=m.height_range,
+        height_margin=m.height_margin, relative_correction=m.relative_correction, match=SGVLLParams(**m.params),
+    )
+
+
+def _fault_from_trace(spec: FaultSpec, crs: str) -> Fault:
+    from pyproj import Transformer
+
+    (lon0, lat0), (lon1, lat1) = spec.trace
+    x, y = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform([lon0, lon1], [lat0, lat1])
+    if math.hypot(x[1] - x[0], y[1] - y[0]) == 0:
+        raise TiledsmError(f"fault.trace: the two points {spec.trace} are the same")
+    return Fault((x[0], y[0]), (x[1] - x[0], y[1] - y[0]))
+
+
+def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrite: bool = False) -> dict:
+    """Pre and post pairs -> DSMs on one grid -> co-registered ``dh`` -> metrics.
+
+    See the module notes for the products and conventions.
+
+    Raises
+    ------
+    NoOverlapError
+        The post pair sees none of the pre DSM's grid (checked before any
+        DSM is computed), or the DSMs have no valid cell in common.
+    NoStableTerrainError
+        The exclusion polygons leave no stable terrain for the fit.
+    """
+    from tiledsm.cluster import ClusterConfig, compute_context
+    from tiledsm.compare import CompareParams, compare_dsms
+    from tiledsm.dsm import dsm_from_pair
+    from tiledsm.geometry.grid import GroundGrid
+    from tiledsm.io import open_product
+    from tiledsm.pipelines import _write_json, write_dsm_products
+
+    cluster = cluster or ClusterConfig(scheduler=recipe.cluster.scheduler, workers=recipe.cluster.workers)
+    t_start = time.perf_counter()
+    timings: dict = {}
+    inp, g = recipe.input, recipe.grid
+    scene = None
+    grid = None
+    if inp.synth is not None:
+        from tiledsm.synth import make_scene
+
+        sy = inp.synth
+        log.info("making synthetic event scene %s", sy.model_dump())
+        t0 = time.perf_counter()
+        scene = make_scene(out / "scene", size=sy.size, gsd=sy.gsd, bh=sy.bh, seed=sy.seed, views=sy.views, event=True)
+        timings["scene_s"] = time.perf_counter() - t0
+        pre_in = ([str(p) for p in scene.views], None)
+        post_in = ([str(p) for p in scene.event["post_views"]], None)
+        if not (g.like or g.bounds or g.resolution):
+            grid = GroundGrid.like(str(scene.truth_dsm), chunk=g.chunk)  # truth on the DSM grid, unresampled
+    else:
+        pre_in = (inp.pre.images, inp.pre.rpcs)
+        post_in = (inp.post.images, inp.post.rpcs)
+    if g.like:
+        grid = GroundGrid.like(g.like, chunk=g.chunk)
+    elif g.bounds:
+        grid = GroundGrid.from_bounds(g.crs, g.bounds, g.resolution, chunk=g.chunk)
+    params = _dsm_params(recipe)
+
+    # ---- both DSMs lazily, the post one on the pre grid; refuse a post pair off the grid before computing
+    ds_pre, rep_pre = dsm_from_pair(*pre_in[0], rpcs=pre_in[1], grid=grid, params=params)
+    grid = GroundGrid.like(ds_pre["height"], chunk=params.chunk)
+    ds_post, rep_post = dsm_from_pair(*post_in[0], rpcs=post_in[1], grid=grid, params=params)
+    _check_post_sees_grid(post_in[0], post_in[1], rep_post["height_range_m"], grid, pre_in[0])
+
+    # ---- stable terrain and fault
+    fault, strip, stable_mask = None, recipe.compare.strip, recipe.compare.stable_mask
+    if scene is not None:
+        ev = scene.event["params"]
+        fault = Fault(np.asarray(ev.fault_point) + np.asarray(scene.origin), ev.strike)
+        if stable_mask is None and inp.synth.auto_stable_mask and recipe.compare.coreg != "none":
+            feats, _ = event_exclusion_polygons(ev, scene.origin, scene.grid.width * scene.grid.resolution)
+            stable_mask = str(_write_geojson(feats, scene.grid.crs, out / "scene" / "stable_mask.geojson"))
+    elif recipe.fault is not None:
+        fault = _fault_from_trace(recipe.fault, grid.crs)
+    cparams = CompareParams(
+        coreg=recipe.compare.coreg, deramp=recipe.compare.deramp, stable_mask=stable_mask,
+        chunks=recipe.compare.chunk, cog=recipe.output.cog, figures=recipe.output.quicklook,
+    )
+
+    # ---- compute
+    for name, ds in (("pre", ds_pre), ("post", ds_post)):
+        log.info("%s-event DSM into %s", name, out / name)
+        t0 = time.perf_counter()
+        write_dsm_products(ds, out / name, cluster=cluster, cog=recipe.output.cog,
+                           quicklook=recipe.output.quicklook, overwrite=overwrite)
+        timings[f"dsm_{name}_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    with compute_context(cluster):
+        res = compare_dsms(out / "pre" / "dsm.zarr", out / "post" / "dsm.zarr", out / "compare", cparams)
+    timings["compare_s"] = time.perf_counter() - t0
+
+    # ---- metrics
+    cm = res.metrics
+    co = res.coregistration
+    metrics: dict = {
+        "pipeline": "deformation",
+        "dh_definition": "post_corrected - pre (m)",
+        "grid": rep_pre["grid"],
+        "pre": {"report": rep_pre},
+        "post": {"report": rep_post},
+        "coregistration": cm["coregistration"],
+        "stable_terrain": {**cm["stable_terrain"], "statistics": cm["statistics"]["stable"]},
+        "dh_statistics": cm["statistics"]["all"],
+        "products": {k: str(Path(v).relative_to(out)) for k, v in res.products.items()},
+    }
+    t0 = time.perf_counter()
+    dh_da = open_product(out / "compare" / "dh.zarr")["dh"]
+    dh = np.asarray(dh_da.values, np.float64)
+    metrics["completeness"] = float(np.isfinite(dh).mean())
+    distance = fault.signed_distance(dh_da.x.values, dh_da.y.values) if fault is not None else None
+    if fault is not None:
+        metrics["fault"] = {**fault.to_dict(), "strip_m": list(strip), "measured": throw_across(dh, distance, strip)}
+        if scene is not None:
+            metrics["fault"]["nominal_throw"] = float(scene.event["params"].throw)
+    if scene is not None:
+        metrics["truth"] = _truth_metrics(scene, dh_da, dh, co, stable_mask, distance, strip)
+    elif inp.truth_dh:
+        truth = _on_grid(inp.truth_dh, dh_da)
+        sel = np.isfinite(truth) & np.isfinite(dh)
+        if inp.truth_mask:
+            sel &= _on_grid(inp.truth_mask, dh_da, nearest=True) > 0.5
+        metrics["truth"] = {"source": inp.truth_dh, "dh_error": error_stats(dh[sel] - truth[sel])}
+        if fault is not None:
+            tt = throw_across(truth, distance, strip, sel)
+            mt = throw_across(dh, distance, strip, sel)
+            metrics["truth"]["throw"] = {"recovered": mt["throw"], "truth": tt["throw"], "error": mt["throw"] - tt["throw"]}
+    timings["metrics_s"] = time.perf_counter() - t0
+    timings["total_s"] = time.perf_counter() - t_start
+    metrics["timings"] = timings
+    _write_json(metrics, out / "metrics.json")
+    log.info("metrics: %s", json.dumps(metrics, default=float))
+    return metrics
+
+
+def _truth_metrics(scene, dh_da, dh, co, stable_mask, distance, strip) -> dict:
+    """Errors of the recovered ``dh`` against the synthetic truth, in the
+    frame of the stable terrain (module notes)."""
+    from tiledsm.compare.stable import exclusion_mask, read_polygons
+
+    ev = scene.event
+    res = float(dh_da.rio.transform().a)
+    if co.method == "none":
+        expected = {"dx_px": 0.0, "dy_px": 0.0, "dz": 0.0, "n_cells": 0}
+    else:
+        crs = dh_da.rio.crs
+        geoms = read_polygons(stable_mask, crs) if stable_mask else []
+        stable = ~exclusion_mask(geoms, dh_da.rio.transform(), dh.shape) & np.isfinite(dh)
+        expected = expected_coregistration(
+            stable, _on_grid(ev["dx"], dh_da), _on_grid(ev["dy"], dh_da), _on_grid(ev["dz"], dh_da), res
+        )
+    truth, visible, ground = _synthetic_truth(scene, dh_da, expected)
+    ok = np.isfinite(dh)
+    out = {
+        "frame": "plain truth dh" if not (expected["dx_px"] or expected["dy_px"] or expected["dz"])
+        else "truth dh in the frame of the stable terrain (expected co-registration applied to the post truth)",
+        "coregistration_expected": expected,
+        "coregistration_error": {
+            "dx_px": co.dx_px - expected["dx_px"], "dy_px": co.dy_px - expected["dy_px"], "dz": co.dz - expected["dz"],
+        },
+        "dh_error_visible_ground": error_stats((dh - truth)[ok & ground]),
+        "dh_error_visible": error_stats((dh - truth)[ok & visible]),
+        "completeness_visible_ground": float((ok & ground).sum() / max(ground.sum(), 1)),
+    }
+    if distance is not None:
+        sel = ok & ground
+        mt = throw_across(dh, distance, strip, sel)
+        tt = throw_across(truth, distance, strip, sel)
+        out["throw"] = {"recovered": mt["throw"], "truth": tt["throw"], "error": mt["throw"] - tt["throw"],
+                        "nominal": float(ev["params"].throw), "cells": [mt["n_left"], mt["n_right"]]}
+    return out
+
+
+def _register_runner() -> None:
+    from tiledsm.pipelines import _runner
+
+    _runner("deformation")(run_deformation)
+
+
+_register_runner()
