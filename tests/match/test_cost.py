@@ -59,3 +59,18 @@ def test_mean_zncc_three_views_ignores_invalid_pairs():
     assert np.allclose(got, ref, equal_nan=True, atol=1e-6)
     # around the nodata pixel only the (0, 1) pair is valid
     assert got[7, 7] == pytest.approx(c01[7, 7], abs=1e-6)
+
+
+def test_mean_zncc_pair_weights():
+    rng = np.random.default_rng(2)
+    v = [rng.random((15, 15)).astype(np.float32) for _ in range(3)]
+    v[2][7, 7] = np.nan
+    w = np.array([[0, 4.0, 1.0], [0, 0, 0.25], [0, 0, 0]])
+    got = mean_zncc_cost(v, 1, weights=w)
+    c = np.stack([zncc_cost(v[0], v[1], 1), zncc_cost(v[0], v[2], 1), zncc_cost(v[1], v[2], 1)])
+    wk = np.array([4.0, 1.0, 0.25])[:, None, None] * np.isfinite(c)
+    ref = np.nansum(wk * np.nan_to_num(c), axis=0) / wk.sum(axis=0)
+    assert np.allclose(got, ref, atol=1e-6, equal_nan=True)
+    assert got[7, 7] == pytest.approx(c[0, 7, 7], abs=1e-6)  # only the (0, 1) pair is valid there
+    with pytest.raises(ValueError, match="weights"):
+        mean_zncc_cost(v, 1, weights=np.ones((2, 2)))

@@ -136,9 +136,11 @@ def zncc_cost(a: np.ndarray, b: np.ndarray, half: int, eps: float = 1e-6, out: n
     return out
 
 
-def mean_zncc_cost(samples: list[np.ndarray], half: int, out: np.ndarray | None = None) -> np.ndarray:
-    """Multi-view cost: ``1 - mean ZNCC`` over all view pairs, ignoring
-    invalid pairs (occluded or outside one view).
+def mean_zncc_cost(
+    samples: list[np.ndarray], half: int, out: np.ndarray | None = None, weights: np.ndarray | None = None
+) -> np.ndarray:
+    """Multi-view cost: ``1 - weighted mean ZNCC`` over all view pairs,
+    ignoring invalid pairs (occluded or outside one view).
 
     Parameters
     ----------
@@ -149,6 +151,11 @@ def mean_zncc_cost(samples: list[np.ndarray], half: int, out: np.ndarray | None 
         Half window size, cells.
     out : numpy.ndarray, optional
         Destination ``(ny, nx)`` float32 array (may be strided).
+    weights : numpy.ndarray, optional
+        ``(n, n)`` weight of pair ``(i, j)`` (upper triangle read), e.g. the
+        pair's parallax per metre of height, so that a narrow-baseline pair,
+        whose correlation peak is wide in height, does not flatten the
+        minimum of a wide one. Default: equal weights.
 
     Returns
     -------
@@ -160,6 +167,9 @@ def mean_zncc_cost(samples: list[np.ndarray], half: int, out: np.ndarray | None 
         raise ValueError(f"mean_zncc_cost: need at least two views, got {n}")
     if n == 2:
         return zncc_cost(samples[0], samples[1], half, out=out)
+    w = np.ones((n, n), np.float32) if weights is None else np.asarray(weights, np.float32)
+    if w.shape != (n, n):
+        raise ValueError(f"mean_zncc_cost: weights must be ({n}, {n}), got {w.shape}")
     total = np.zeros(samples[0].shape, np.float32)
     count = np.zeros(samples[0].shape, np.float32)
     tmp = np.empty(samples[0].shape, np.float32)
@@ -167,8 +177,8 @@ def mean_zncc_cost(samples: list[np.ndarray], half: int, out: np.ndarray | None 
         for j in range(i + 1, n):
             zncc_cost(samples[i], samples[j], half, out=tmp)
             ok = np.isfinite(tmp)
-            total[ok] += tmp[ok]
-            count += ok
+            total[ok] += w[i, j] * tmp[ok]
+            count[ok] += w[i, j]
     with np.errstate(invalid="ignore", divide="ignore"):
         res = (total / count).astype(np.float32)
     if out is None:

@@ -108,6 +108,14 @@ class SGVLLParams:
     ref_sigma : float
         Smoothing (cells) of the reference surface built from per-cell
         bounds when no ``h_ref`` is given (see :func:`match_block`).
+    weight_pairs : bool
+        With three or more views, weight each pair's ZNCC by its squared
+        parallax per metre of height (inverse variance; see
+        :func:`tiledsm.match.cost.mean_zncc_cost`); ``False``: plain mean.
+        Measured on a 512 px synthetic scene with a middle view (B/H 0.4,
+        0.2, 0.2), visible ground: NMAD 0.33 m plain, 0.28 m weighted
+        (two views alone: 0.26 m, with 1 % less completeness and a worse
+        RMSE).
     """
 
     window: int = 5
@@ -127,6 +135,7 @@ class SGVLLParams:
     levels: int = 3
     refine_steps: int = 4
     ref_sigma: float = 3.0
+    weight_pairs: bool = True
 
     def __post_init__(self) -> None:
         if self.window < 1 or self.window % 2 == 0:
@@ -293,6 +302,17 @@ def _node_coords(coords: np.ndarray, stride: int) -> np.ndarray:
     return coords[0] + np.arange(g) * stride * d
 
 
+def _pair_weights(lat_r: np.ndarray, lat_c: np.ndarray, dh: float) -> np.ndarray:
+    """``(nv, nv)`` weights of the view pairs: squared parallax per metre of
+    height (pixels²/m²) at the middle of the block, from the projection
+    lattice. A pair's height precision grows with its parallax, so this is
+    an inverse-variance weighting of the pairs' evidence."""
+    gy, gx = lat_r.shape[2] // 2, lat_r.shape[3] // 2
+    dr = (lat_r[:, 1, gy, gx] - lat_r[:, 0, gy, gx]) / dh
+    dc = (lat_c[:, 1, gy, gx] - lat_c[:, 0, gy, gx]) / dh
+    return np.hypot(dr[:, None] - dr[None, :], dc[:, None] - dc[None, :]) ** 2
+
+
 def _as_grid(v, shape, name) -> np.ndarray:
     a = np.asarray(v, np.float64)
     try:
@@ -364,7 +384,7 @@ def match_block(
     images : sequence of numpy.ndarray
         One 2-D window per view (float32 after conversion; NaN = nodata).
         Two views: cost = 1 - ZNCC; three or more: 1 - mean ZNCC over the
-        view pairs, ignoring invalid pairs.
+        view pairs (weighted by parallax, see ``weight_pairs``), ignoring invalid pairs.
     rpcs : sequence of RPC
         The camera of each *full* image (GDAL pixel convention).
     windows : sequence of (row0, col0) or None
@@ -463,6 +483,7 @@ def match_block(
             lat_r[v, t] = r - 0.5 - r0
             lat_c[v, t] = c - 0.5 - c0
 
+    pair_w = _pair_weights(lat_r, lat_c, dh) if params.weight_pairs else None
     t_start = time.perf_counter()
     half = params.window // 2
     vol = np.full((ny, nx, nd), _MASKED_COST, np.float32)
@@ -487,7 +508,7 @@ def match_block(
             )
             for v in range(nv)
         ]
-        cost = mean_zncc_cost(samples, half)
+        cost = mean_zncc_cost(samples, half, weights=pair_w)
         _scatter(cost, label, base, nvalid, r0, c0, vol)
         n_swept += 1
     t_cost = time.perf_counter() - t_start
