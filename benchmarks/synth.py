@@ -14,10 +14,12 @@ import json
 import os
 import platform
 import shutil
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from benchmarks._measure import measure  # noqa: E402
 
 CHILD = r"""
 import json, resource, sys, time
@@ -40,15 +42,23 @@ def main(argv=None) -> int:
     rows = []
     for size in args.sizes:
         scratch = Path(args.out or tempfile.mkdtemp(prefix="tiledsm_synth_bench_")) / f"scene_{size}"
-        res = subprocess.run([sys.executable, "-c", CHILD, str(size), str(args.workers), str(scratch)],
-                             capture_output=True, text=True, check=True)
-        row = json.loads(res.stdout.strip().splitlines()[-1])
+        log = Path(tempfile.mkstemp(prefix="tiledsm_synth_bench_", suffix=".log")[1])
+        # the whole process tree (client + dask workers) is sampled: RUSAGE_SELF alone misses the workers
+        m = measure([sys.executable, "-c", CHILD, str(size), str(args.workers), str(scratch)], log=log)
+        if not m.ok:
+            raise SystemExit(f"make_scene {size} failed (exit {m.returncode}), see {log}")
+        row = json.loads(log.read_text().strip().splitlines()[-1])
+        row["peak_single_process_mib"] = m.peak_single_rss_mib
+        row["peak_tree_pss_mib"] = m.peak_pss_mib
+        row["peak_tree_rss_mib"] = m.peak_rss_mib
+        row["load"] = [m.load_before, m.load_after]
         row["mpix_per_s"] = 2 * size * size / 1e6 / row["timings_s"]["render_and_write"]
         row["bytes_written"] = sum(p.stat().st_size for p in scratch.glob("*"))
         rows.append(row)
         if args.out is None:
             shutil.rmtree(scratch.parent, ignore_errors=True)
-        print(f"{size:>6d} px  {row['wall_s']:8.1f} s  peak RSS {row['peak_rss_mb']:8.0f} MB  "
+        print(f"{size:>6d} px  {row['wall_s']:8.1f} s  peak RSS client {row['peak_rss_mb']:6.0f} MB, "
+              f"largest process {m.peak_single_rss_mib:6.0f} MiB, tree PSS {m.peak_pss_mib or float('nan'):6.0f} MiB  "
               f"render {row['mpix_per_s']:.2f} Mpx/s  B/H {row['bh_measured']:.4f}  "
               f"RPC fit {row['rpc_fit_max_px']:.1e} px", flush=True)
     doc = {"benchmark": "synth.make_scene (2 views, gsd 0.5, bh 0.4, chunk 512)", "workers": args.workers,
