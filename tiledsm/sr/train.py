@@ -18,7 +18,14 @@ Degradations (applied to random HR patches on the fly):
   antialias=True)``, MATLAB ``imresize``-like);
 - ``"blur_noise"`` (SRMD): Gaussian blur (sigma uniform in
   ``blur_range`` HR px), direct downsampling (pixel ``[s//2::s]``), white
-  Gaussian noise (std uniform in ``noise_range``, normalised units).
+  Gaussian noise (std uniform in ``noise_range``, normalised units). With
+  ``centred=True`` the blur kernel is shifted so that LR pixel ``j`` samples
+  HR index coordinate ``(j + 0.5) s - 0.5``: the corner convention of
+  :mod:`tiledsm.synth.degrade` and of the RPC that
+  :func:`~tiledsm.sr.infer.super_resolve` attaches. Without it (the
+  default, kept for compatibility) the samples sit half an HR pixel off
+  that convention for even scales, and a network trained so shifts its
+  output by half an HR pixel against its RPC.
 
 All images are normalised to [0, 1] (8-bit sources divided by 255).
 """
@@ -36,7 +43,7 @@ import torch.nn.functional as F
 
 from tiledsm.sr.metrics import psnr
 from tiledsm.sr.models import Bicubic
-from tiledsm.sr.models.srmd import gaussian_kernel
+from tiledsm.sr.models.srmd import KERNEL_SIZE, gaussian_kernel
 from tiledsm.sr.registry import SRError, build
 
 __all__ = [
@@ -88,6 +95,9 @@ class TrainConfig:
         SRMD, ``bicubic`` otherwise).
     blur_range, noise_range : tuple of float
         SRMD degradation families (HR px; normalised noise std).
+    centred : bool
+        ``blur_noise`` only: sample the LR pixels at their centres (corner
+        convention, see the module notes) instead of at pixel ``s//2``.
     half : bool
         Store weights as float16 (keeps VDSR under 2 MB); cast back on load.
     params : dict
@@ -114,6 +124,7 @@ class TrainConfig:
     degradation: str | None = None
     blur_range: tuple[float, float] = (0.2, 2.6)
     noise_range: tuple[float, float] = (0.0, 25.0 / 255.0)
+    centred: bool = False
     half: bool = False
     params: dict = field(default_factory=dict)
     threads: int = 1
@@ -211,11 +222,30 @@ def degrade_bicubic(hr: torch.Tensor, scale: int) -> torch.Tensor:
     return F.interpolate(hr, scale_factor=1 / scale, mode="bicubic", antialias=True, align_corners=False).clamp(0, 1)
 
 
-def degrade_blur_noise(hr: torch.Tensor, scale: int, sigma: torch.Tensor, noise: torch.Tensor, gen: torch.Generator | None = None) -> torch.Tensor:
+def _sampling_kernel(sigma: float, scale: int, centred: bool) -> np.ndarray:
+    """Blur kernel (``KERNEL_SIZE`` square, sum 1) applied before taking
+    pixels ``s//2::s``; ``centred`` moves its centre by
+    ``(s - 1) / 2 - s // 2`` HR px (-0.5 for even ``s``) so that the samples
+    land on the LR pixel centres ``(j + 0.5) s - 0.5``."""
+    shift = (scale - 1) / 2 - scale // 2 if centred else 0.0
+    if shift == 0.0:
+        return gaussian_kernel(sigma)
+    r = np.arange(KERNEL_SIZE) - KERNEL_SIZE // 2 - shift
+    if sigma <= 0:  # no blur: linear interpolation at the shifted centre
+        g = np.maximum(0.0, 1.0 - np.abs(r))
+    else:
+        g = np.exp(-0.5 * (r / sigma) ** 2)
+    k = np.outer(g, g)
+    return k / k.sum()
+
+
+def degrade_blur_noise(hr: torch.Tensor, scale: int, sigma: torch.Tensor, noise: torch.Tensor, gen: torch.Generator | None = None,
+                       centred: bool = False) -> torch.Tensor:
     """SRMD degradation per batch item: Gaussian blur (``sigma[i]`` HR px,
-    reflect border), direct downsampling (pixels ``s//2::s``), white noise
+    reflect border), direct downsampling (pixels ``s//2::s``; with
+    ``centred``, at the LR pixel centres ``(j + 0.5) s - 0.5``), white noise
     of std ``noise[i]``."""
-    kernels = torch.stack([torch.as_tensor(gaussian_kernel(float(s)), dtype=hr.dtype) for s in sigma])[:, None]
+    kernels = torch.stack([torch.as_tensor(_sampling_kernel(float(s), scale, centred), dtype=hr.dtype) for s in sigma])[:, None]
     k = kernels.shape[-1]
     n = hr.shape[0]
     x = F.pad(hr, (k // 2,) * 4, mode="reflect")
@@ -242,7 +272,7 @@ def _sample_patches(images, n: int, size: int, rng: np.random.Generator) -> torc
 
 # ------------------------------------------------------------ evaluation
 def evaluate(model, scale: int, images: dict[str, np.ndarray] | None = None, degradation: str = "bicubic",
-             blur_sigma: float = 1.0, noise: float = 0.0) -> dict[str, dict[str, float]]:
+             blur_sigma: float = 1.0, noise: float = 0.0, centred: bool = False) -> dict[str, dict[str, float]]:
     """PSNR (8-bit peak, border = scale cropped) of ``model`` and of bicubic
     on held-out images degraded like the training data.
 
@@ -261,7 +291,7 @@ def evaluate(model, scale: int, images: dict[str, np.ndarray] | None = None, deg
             lr = degrade_bicubic(hr, scale)
             kw = {}
         else:
-            lr = degrade_blur_noise(hr, scale, torch.tensor([blur_sigma]), torch.tensor([noise]), gen)
+            lr = degrade_blur_noise(hr, scale, torch.tensor([blur_sigma]), torch.tensor([noise]), gen, centred=centred)
             kw = {"blur_sigma": blur_sigma, "noise": noise}
         lr_np = lr[0, 0].numpy()
         ref = hr[0, 0].numpy() * 255
@@ -303,7 +333,7 @@ def train(config: TrainConfig, log=print) -> dict:
             sigma = torch.rand(config.batch, generator=gen) * (hi - lo) + lo
             nlo, nhi = config.noise_range
             noise = torch.rand(config.batch, generator=gen) * (nhi - nlo) + nlo
-            lr_img = degrade_blur_noise(hr, s, sigma, noise, gen)
+            lr_img = degrade_blur_noise(hr, s, sigma, noise, gen, centred=config.centred)
             pred = model(lr_img, blur_sigma=sigma, noise=noise)
         loss = F.mse_loss(pred, hr)
         opt.zero_grad()
@@ -323,7 +353,7 @@ def train(config: TrainConfig, log=print) -> dict:
     if config.eval_crop:
         c = config.eval_crop
         held_images = {k: v[(v.shape[0] - c) // 2 :][:c, (v.shape[1] - c) // 2 :][:, :c] for k, v in held_images.items()}
-    held = evaluate(model, s, held_images, degradation=config.degradation, **eval_kw)
+    held = evaluate(model, s, held_images, degradation=config.degradation, centred=config.centred, **eval_kw)
     card = {
         "model": config.model,
         "scale": s,
@@ -337,7 +367,7 @@ def train(config: TrainConfig, log=print) -> dict:
         "threads": config.threads,
         "final_loss_mse": float(np.mean(losses[-100:])) if losses else None,
         "heldout_psnr_db": held,
-        "heldout_eval": {"degradation": config.degradation, **eval_kw, "peak": 255, "border": s, "crop": config.eval_crop},
+        "heldout_eval": {"degradation": config.degradation, **eval_kw, "centred": config.centred, "peak": 255, "border": s, "crop": config.eval_crop},
         "config": {k: v for k, v in asdict(config).items() if k != "out"},
         "torch": torch.__version__,
     }
@@ -358,7 +388,8 @@ def write_weights(model, config: TrainConfig, card: dict) -> Path:
         f"- file: `{out.name}` ({out.stat().st_size / 1e6:.2f} MB, {'float16' if config.half else 'float32'} storage, float32 at load)",
         f"- trained: {card['steps']} Adam steps of {config.batch} patches {config.patch}x{config.patch} (HR), "
         f"{card['seconds']} s on {card['device']} with {card['threads']} thread(s), seed {config.seed}",
-        f"- degradation: {config.degradation}" + (f" (blur sigma {config.blur_range} HR px, noise std {config.noise_range})" if config.degradation == "blur_noise" else " (antialiased bicubic, torch)"),
+        f"- degradation: {config.degradation}" + (f" (blur sigma {config.blur_range} HR px, noise std {config.noise_range}, "
+                                            f"{'centred' if config.centred else 'pixel s//2::s'} sampling)" if config.degradation == "blur_noise" else " (antialiased bicubic, torch)"),
         f"- data ({len(card['data'])} images): " + ", ".join(card["data"]),
         f"- held out (never trained on): {', '.join(HELD_OUT)} (scikit-image)",
         f"- final training MSE (normalised, last 100 steps): {card['final_loss_mse']:.3e}",

@@ -1,1 +1,530 @@
-"""Super-resolution before matching: the SR -> DSM comparison workflow (see tiledsm.workflows)."""
+"""Super-resolution before matching: the SR -> DSM comparison workflow (see tiledsm.workflows).
+
+The simulated experiment of Zhang et al., "CNN-based subpixel DSM
+generation via single-image super-resolution" (issue 4's seed paper): a
+high-resolution (HR) stereo pair is degraded to a low-resolution (LR) pair,
+and DSMs made from the LR pair with and without super-resolution are
+compared with the DSM of the HR pair.
+
+Steps (``pipeline: sr_dsm``), all under the run folder:
+
+1. ``scene/`` (synthetic input only): the HR pair and its truth
+   (:func:`tiledsm.synth.make_scene`).
+2. ``hr/``: the reference DSM, from the HR pair, on the ground grid ``G``
+   (HR resolution). ``G`` is, in order: ``grid.like``; the grid of
+   ``input.reference``; the grid of the synthetic truth; ``grid.bounds``;
+   else the HR DSM's own default grid.
+3. ``lr/``: the LR pair (:func:`tiledsm.synth.degrade`, ``sr.degrade``
+   kernel, factor ``sr.scale``, RPCs regenerated exactly) and, for the
+   ``dsm_upscale`` method, its DSM on ``G`` coarsened ``sr.scale`` times
+   (:func:`lr_grid`).
+4. one folder per method (``sr.models``):
+
+   - ``dsm_upscale/``: the LR DSM interpolated bilinearly onto ``G``
+     (:func:`upsample_dsm`);
+   - ``bicubic/``, ``srcnn/``, ``vdsr/``, ``srmd/``: each LR image
+     super-resolved ``sr.scale`` times (:func:`tiledsm.sr.super_resolve`,
+     shipped weights, RPC scaled), written as ``sr_view_{i}.tif``
+     (float32 DN with RPC tags), then its DSM on ``G``.
+
+5. ``metrics.json`` and ``report.md``: image quality of each SR image
+   against the HR image (PSNR, SSIM; Table 1 of the paper) and DSM accuracy
+   (RMSE, MRE, NMAD, completeness; Table 2) against the HR-pair DSM, plus
+   against the synthetic truth on visible ground or the given reference
+   DSM when there is one.
+
+Conventions
+-----------
+- Heights are metres above the WGS84 ellipsoid; NaN = no height.
+- Pixel grids follow GDAL's corner convention: LR pixel ``j`` covers HR
+  pixels ``[j s, (j + 1) s)``; SR pixel ``k`` covers LR area
+  ``[k / s, (k + 1) / s)``; so an SR image is registered to its HR image
+  pixel for pixel (HR images are cropped to ``s * floor(n / s)``).
+- PSNR/SSIM peak: ``2**sr.bit_depth - 1`` DN; ``sr.border`` pixels
+  (default ``sr.scale``) are cropped on each side.
+- MRE is the mean of ``|dh| / |h_ref|`` (ellipsoidal heights), reported
+  in percent.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Iterator, Literal, Optional
+
+import numpy as np
+import xarray as xr
+from scipy import sparse
+from pydantic import Field, field_validator, model_validator
+
+from tiledsm.cluster import ClusterConfig, compute_context
+from tiledsm.errors import TiledsmError
+from tiledsm.geometry.grid import GroundGrid
+from tiledsm.recipes import (
+    ClusterSpec,
+    GridSpec,
+    InputSpec,
+    MatchSpec,
+    OutputSpec,
+    _Strict,
+    register_recipe,
+)
+
+log = logging.getLogger("tiledsm")
+
+__all__ = [
+    "METHODS",
+    "UPSCALE",
+    "SRSpec",
+    "SRDSMRecipe",
+    "SRDSMError",
+    "lr_grid",
+    "upsample_dsm",
+    "image_quality",
+    "markdown_report",
+    "run_sr_dsm",
+]
+
+#: the method that super-resolves the DSM instead of the images
+UPSCALE = "dsm_upscale"
+#: every method, in the order of the paper's tables
+METHODS = (UPSCALE, "bicubic", "srcnn", "vdsr", "srmd")
+_LABELS = {UPSCALE: "DSM upscale", "bicubic": "Bicubic", "srcnn": "SRCNN", "vdsr": "VDSR", "srmd": "SRMD", "hr": "HR pair", "lr": "LR pair"}
+
+
+class SRDSMError(TiledsmError):
+    """Raised when a stage of the SR -> DSM workflow cannot run (message
+    names the file or the recipe field)."""
+
+
+# ------------------------------------------------------------------ schema
+class SRSpec(_Strict):
+    """Degradation and super-resolution settings of ``pipeline: sr_dsm``."""
+
+    scale: int = Field(2, ge=2, le=4, description="HR/LR factor; the SR factor too")
+    models: list[str] = Field(default_factory=lambda: list(METHODS), min_length=1,
+                              description=f"methods to run, among {list(METHODS)} (and any registered SR model)")
+    degrade: Literal["bicubic", "gaussian"] = Field("bicubic", description="LR kernel (tiledsm.synth.degrade)")
+    degrade_sigma: Optional[float] = Field(None, gt=0, description="gaussian kernel sigma, HR px (default scale / 2)")
+    lr_noise: float = Field(0.0, ge=0, description="noise added to the LR images, DN (std)")
+    bit_depth: int = Field(12, ge=8, le=16, description="sensor bit depth: SR normalisation and PSNR peak")
+    srmd_blur_sigma: float = Field(
+        0.3, ge=0,
+        description="SRMD's Gaussian blur sigma, HR px (0.3: best PSNR of the shipped SRMD on the held-out "
+                    "camera/coffee images degraded by bicubic x2; the least-squares Gaussian fit of that "
+                    "kernel, 0.8, over-sharpens: -0.6 dB)")
+    srmd_noise: float = Field(0.0, ge=0, description="SRMD's noise level, DN (std)")
+    chunk: int = Field(256, ge=32, description="SR tile side, LR pixels")
+    border: Optional[int] = Field(None, ge=0, description="pixels cropped for PSNR/SSIM (default: scale)")
+    device: str = Field("cpu", description="torch device of the SR networks")
+
+    @field_validator("models")
+    @classmethod
+    def _known_models(cls, value: list[str]) -> list[str]:
+        from tiledsm.sr.registry import MODELS
+
+        known = [UPSCALE, *MODELS.names()]
+        bad = [m for m in value if m not in known]
+        if bad:
+            raise ValueError(f"unknown method(s) {bad}; known: {known}")
+        if len(set(value)) != len(value):
+            raise ValueError(f"methods listed twice: {value}")
+        return value
+
+
+class SRDSMRecipe(_Strict):
+    """``pipeline: sr_dsm`` — HR pair (or synthetic scene) -> LR pair -> DSM
+    upscale and SR -> DSM per model, compared with the HR-pair DSM."""
+
+    pipeline: Literal["sr_dsm"]
+    name: str = "sr_dsm"
+    input: InputSpec
+    sr: SRSpec = SRSpec()
+    grid: GridSpec = GridSpec()
+    match: MatchSpec = MatchSpec()
+    cluster: ClusterSpec = ClusterSpec()
+    output: OutputSpec = OutputSpec()
+
+    @model_validator(mode="after")
+    def _pair(self):
+        inp = self.input
+        if inp.images is not None and len(inp.images) != 2:
+            raise ValueError(f"input.images: the sr_dsm workflow takes a pair (2 images), got {len(inp.images)}")
+        if inp.rpcs is not None and any(r is not None for r in inp.rpcs):
+            raise ValueError("input.rpcs: sr_dsm needs the cameras in the images (tags or sidecar): "
+                             "the LR and SR images carry regenerated RPC tags")
+        if self.output.geoid is not None:
+            raise ValueError("output.geoid: sr_dsm compares ellipsoidal heights; geoid output is not supported")
+        return self
+
+
+# ------------------------------------------------------------ pure helpers
+def lr_grid(grid: GroundGrid, scale: int) -> GroundGrid:
+    """``grid`` coarsened ``scale`` times: same CRS and outer corner, cells
+    ``scale`` times larger (the last row/column may overhang ``grid``).
+
+    LR cell ``k`` covers fine cells ``[k s, (k + 1) s)``; its centre is at
+    ``x0 + (k + 0.5) s r``. The chunk is ``grid.chunk / scale`` (even, >= 32).
+    """
+    chunk = max(32, (grid.chunk // scale) // 2 * 2)
+    return GroundGrid(grid.crs, grid.x0, grid.y0, grid.resolution * scale,
+                      math.ceil(grid.width / scale), math.ceil(grid.height / scale), chunk)
+
+
+def _linear_weights(src: np.ndarray, dst: np.ndarray) -> "sparse.csr_matrix":
+    """Sparse ``(len(dst), len(src))`` matrix of 1-D linear interpolation
+    on a regular axis (ascending or descending), extrapolating linearly
+    beyond the outer samples."""
+    n = src.size
+    if n == 1:
+        return sparse.csr_matrix(np.ones((dst.size, 1)))
+    f = (dst - src[0]) / ((src[-1] - src[0]) / (n - 1))
+    i0 = np.clip(np.floor(f).astype(np.int64), 0, n - 2)
+    w = f - i0
+    rows = np.repeat(np.arange(dst.size), 2)
+    cols = np.stack([i0, i0 + 1], axis=1).ravel()
+    vals = np.stack([1.0 - w, w], axis=1).ravel()
+    return sparse.csr_matrix((vals, (rows, cols)), shape=(dst.size, n))
+
+
+def upsample_dsm(height: xr.DataArray, grid: GroundGrid, min_weight: float = 0.5) -> xr.DataArray:
+    """Bilinear interpolation of a DSM at the cell centres of ``grid``.
+
+    Parameters
+    ----------
+    height : xarray.DataArray
+        DSM (metres), dims ``(y, x)`` with cell-centre coordinates, NaN =
+        no height; e.g. on :func:`lr_grid` of ``grid``.
+    grid : GroundGrid
+        Target grid (same CRS).
+    min_weight : float
+        A target cell gets a height when its valid source neighbours carry
+        at least this fraction of its bilinear weight; the weights are then
+        renormalised over them (GDAL's bilinear rule with nodata, plus a
+        threshold). With the default 0.5 and a factor-2 grid, a target cell
+        is valid when its nearest source cell is (weight 9/16), so holes
+        keep their size instead of growing by a cell.
+
+    Returns
+    -------
+    xarray.DataArray
+        float32 heights on ``grid`` (CRS and transform written). Target
+        centres beyond the outer source centres (half a source cell at the
+        edges) are extrapolated linearly.
+    """
+    import rioxarray  # noqa: F401  (registers .rio)
+
+    src = np.asarray(height.values, np.float64)
+    valid = np.isfinite(src)
+    ay = _linear_weights(np.asarray(height.y.values, np.float64), grid.y)
+    ax = _linear_weights(np.asarray(height.x.values, np.float64), grid.x)
+    num = (ax @ (ay @ np.where(valid, src, 0.0)).T).T
+    den = (ax @ (ay @ valid.astype(np.float64)).T).T
+    with np.errstate(invalid="ignore", divide="ignore"):
+        values = np.where(den >= min_weight - 1e-9, num / den, np.nan)
+    out = xr.DataArray(values.astype(np.float32), dims=("y", "x"), coords={"y": grid.y, "x": grid.x}, name=height.name)
+    out.attrs = {k: v for k, v in height.attrs.items() if k in ("units", "long_name")}
+    return out.rio.write_crs(grid.crs).rio.write_transform(grid.transform)
+
+
+def image_quality(hr: np.ndarray, sr: np.ndarray, *, peak: float, border: int) -> dict:
+    """PSNR (dB) and SSIM of an SR image against its HR image.
+
+    ``hr`` is cropped to ``sr``'s shape (the SR image of an LR image of
+    ``floor(n / s)`` pixels has ``s * floor(n / s)``); ``border`` pixels are
+    cropped on each side; NaN pixels are ignored (see :mod:`tiledsm.sr.metrics`).
+    """
+    from tiledsm.sr.metrics import psnr, ssim
+
+    hr = np.asarray(hr, np.float64)
+    sr = np.asarray(sr, np.float64)
+    if sr.shape[0] > hr.shape[0] or sr.shape[1] > hr.shape[1]:
+        raise SRDSMError(f"SR image {sr.shape} is larger than its HR image {hr.shape}")
+    hr = hr[: sr.shape[0], : sr.shape[1]]
+    return {
+        "psnr_db": psnr(hr, sr, data_range=peak, border=border),
+        "ssim": ssim(hr, sr, data_range=peak, border=border),
+        "peak": float(peak),
+        "border": int(border),
+    }
+
+
+def _fmt(v, spec: str, scale: float = 1.0) -> str:
+    if v is None or not np.isfinite(v):
+        return "–"
+    return format(v * scale, spec)
+
+
+def markdown_report(metrics: dict) -> str:
+    """The run's ``report.md``: Table 1 (image quality) and Table 2 (DSM
+    accuracy against the HR-pair DSM), plus Table 3 against the synthetic
+    truth (visible ground) or the given reference DSM when available."""
+    m = metrics["methods"]
+    sr = metrics["sr"]
+    lines = [
+        f"# SR -> DSM comparison: {metrics['name']}",
+        "",
+        f"Input: {metrics['input']}. LR pair: {sr['degrade']} x{sr['scale']} degradation of the HR pair "
+        f"(RPCs regenerated); SR x{sr['scale']} with the shipped weights; every DSM on the HR grid "
+        f"({metrics['grid']['resolution']:g} m, {metrics['grid']['width']} x {metrics['grid']['height']} cells).",
+        "",
+        f"**Table 1.** Image quality of the SR images against the HR images (mean of the two views; "
+        f"PSNR peak {2 ** sr['bit_depth'] - 1} DN, {sr['border']} px border cropped).",
+        "",
+        "| Method | PSNR (dB) | SSIM |",
+        "|---|---|---|",
+    ]
+    for name, r in m.items():
+        if "image" in r:
+            lines.append(f"| {_LABELS.get(name, name)} | {_fmt(r['image']['psnr_db'], '.2f')} | {_fmt(r['image']['ssim'], '.4f')} |")
+    lines += [
+        "",
+        "**Table 2.** DSM accuracy against the DSM of the HR pair (all cells where it has a height).",
+        "",
+        "| Method | RMSE (m) | MRE (%) | NMAD (m) | Completeness (%) |",
+        "|---|---|---|---|---|",
+    ]
+    for name, r in m.items():
+        s = r["vs_hr"]
+        lines.append(f"| {_LABELS.get(name, name)} | {_fmt(s['rmse'], '.3f')} | {_fmt(s.get('mre'), '.4f', 100)} | "
+                     f"{_fmt(s['nmad'], '.3f')} | {_fmt(s['completeness'], '.1f', 100)} |")
+    key, title = None, None
+    if "vs_truth_visible" in metrics["hr"]:
+        key, title = "vs_truth_visible", "the synthetic truth, on visible ground (cells seen by both views, edges excluded)"
+    elif "vs_reference" in metrics["hr"]:
+        key, title = "vs_reference", f"the given reference DSM `{Path(metrics['reference']).name}`"
+    if key:
+        lines += [
+            "",
+            f"**Table 3.** DSM accuracy against {title}.",
+            "",
+            "| Method | RMSE (m) | MRE (%) | NMAD (m) | Median (m) | Completeness (%) |",
+            "|---|---|---|---|---|---|",
+        ]
+        for name, r in {"hr": metrics["hr"], **m}.items():
+            s = r[key]
+            lines.append(f"| {_LABELS.get(name, name)} | {_fmt(s['rmse'], '.3f')} | {_fmt(s.get('mre'), '.4f', 100)} | "
+                         f"{_fmt(s['nmad'], '.3f')} | {_fmt(s['median'], '+.3f')} | {_fmt(s['completeness'], '.1f', 100)} |")
+    lines += ["", "Timings (s): " + ", ".join(f"{_LABELS.get(k, k)} {v:.1f}" for k, v in metrics["timings"].items()), ""]
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------- stages
+@contextlib.contextmanager
+def _shared_cluster(config: ClusterConfig) -> Iterator[ClusterConfig]:
+    """One local cluster for the whole run (each stage then connects to its
+    address); an explicit scheduler or ``synchronous`` is used as is."""
+    if config.scheduler is not None:
+        yield config
+        return
+    with compute_context(config) as client:
+        yield dataclasses.replace(config, scheduler=client.scheduler.address)
+
+
+def _dsm_params(recipe: SRDSMRecipe, grid: GroundGrid | None):
+    from tiledsm.dsm import DSMParams
+    from tiledsm.match.sgvll import SGVLLParams
+
+    m = recipe.match
+    chunk = grid.chunk if grid is not None else recipe.grid.chunk
+    return DSMParams(
+        resolution=grid.resolution if grid is not None else recipe.grid.resolution,
+        chunk=max(32, chunk // 2 * 2),
+        levels=m.levels,
+        height_range=m.height_range,
+        height_margin=m.height_margin,
+        relative_correction=m.relative_correction,
+        match=SGVLLParams(**m.params),
+    )
+
+
+def _make_dsm(views, grid, recipe, folder: Path, cluster: ClusterConfig, overwrite: bool) -> tuple[xr.DataArray, dict]:
+    """DSM of ``views`` on ``grid`` into ``folder`` (products); returns the stored height and a report."""
+    from tiledsm.dsm import dsm_from_pair
+    from tiledsm.io import open_product
+    from tiledsm.pipelines import write_dsm_products
+
+    t0 = time.perf_counter()
+    ds, report = dsm_from_pair(*[str(v) for v in views], grid=grid, params=_dsm_params(recipe, grid))
+    timings = write_dsm_products(ds, folder, cluster=cluster, cog=recipe.output.cog,
+                                 quicklook=recipe.output.quicklook, overwrite=overwrite)
+    timings["total_s"] = time.perf_counter() - t0
+    report = {"height_range_m": report.get("height_range_m"), "grid": report.get("grid"), "timings": timings}
+    return open_product(folder / "dsm.zarr")["height"], report
+
+
+def _read_band(path: Path) -> np.ndarray:
+    import rasterio
+
+    with rasterio.open(path) as src:
+        return src.read(1, masked=True).astype(np.float64).filled(np.nan)
+
+
+def _super_resolve_file(lr: Path, out: Path, model: str, sr: SRSpec, cluster: ClusterConfig) -> Path:
+    """Super-resolve one LR image into ``out`` (float32 DN, scaled RPC tags)."""
+    from tiledsm.io import open_scene, scene_rpc, write_geotiff_with_rpc
+    from tiledsm.sr.infer import super_resolve
+    from tiledsm.sr.registry import load_pretrained
+
+    net = load_pretrained(model, sr.scale, device=sr.device)
+    kw = {"blur_sigma": sr.srmd_blur_sigma, "noise": sr.srmd_noise} if net.takes_degradation else {}
+    scene = open_scene(lr, chunks=sr.chunk)
+    hr = super_resolve(scene, net, sr.scale, device=sr.device, value_scale=float(2**sr.bit_depth - 1), **kw)
+    tags = {k: v for k, v in hr.attrs.items() if k.startswith("sr_")}
+    tags["sr_model"] = model
+    with compute_context(cluster):
+        write_geotiff_with_rpc(hr, out, scene_rpc(hr), nodata=float("nan"), dtype="float32", tags=tags)
+    return out
+
+
+def _scores(height: xr.DataArray, hr_height: xr.DataArray, refs: dict) -> dict:
+    """Statistics of ``height`` against the HR-pair DSM and the other references."""
+    from tiledsm.pipelines import dsm_metrics
+
+    out = {"vs_hr": dsm_metrics(height, hr_height)}
+    out.update({key: dsm_metrics(height, ref, mask=mask) for key, (ref, mask) in refs.items()})
+    return out
+
+
+def _hr_pair(recipe: SRDSMRecipe, out: Path) -> tuple[list[Path], dict]:
+    """The HR views and what is known about them (truth, reference)."""
+    inp = recipe.input
+    if inp.synth is not None:
+        from tiledsm.synth import make_scene
+
+        sy = inp.synth
+        log.info("making synthetic scene %s", sy.model_dump())
+        scene = make_scene(out / "scene", size=sy.size, gsd=sy.gsd, bh=sy.bh, seed=sy.seed, views=sy.views, event=False)
+        info = {"truth": Path(scene.truth_dsm), "visible": Path(scene.visible_mask),
+                "description": f"synthetic scene (size {sy.size} px, GSD {sy.gsd} m, B/H {sy.bh}, seed {sy.seed})"}
+        return [Path(v) for v in scene.views[:2]], info
+    views = [Path(p) for p in inp.images]
+    for v in views:
+        if not v.exists():
+            raise SRDSMError(f"{v}: input.images: no such file")
+    info = {"description": "HR pair " + ", ".join(v.name for v in views)}
+    if inp.reference:
+        info["reference"] = Path(inp.reference)
+        if not info["reference"].exists():
+            raise SRDSMError(f"{inp.reference}: input.reference: no such file")
+    return views, info
+
+
+def _target_grid(recipe: SRDSMRecipe, info: dict) -> GroundGrid | None:
+    g = recipe.grid
+    if g.like:
+        return GroundGrid.like(g.like, chunk=g.chunk)
+    if "reference" in info:
+        return GroundGrid.like(str(info["reference"]), chunk=g.chunk)
+    if "truth" in info:
+        return GroundGrid.like(str(info["truth"]), chunk=g.chunk)
+    if g.bounds:
+        return GroundGrid.from_bounds(g.crs, g.bounds, g.resolution, chunk=g.chunk)
+    return None
+
+
+# ----------------------------------------------------------------- runner
+def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = None, overwrite: bool = False) -> dict:
+    """Run ``pipeline: sr_dsm`` into ``out`` (see the module docstring).
+
+    Returns the metrics written to ``out/metrics.json``: per method, the
+    image quality (``image``: PSNR dB, SSIM, per view and mean) and the DSM
+    statistics (``vs_hr`` and, when available, ``vs_truth_visible`` or
+    ``vs_reference``; metres), timings in seconds.
+    """
+    from tiledsm.pipelines import _reference_on_grid, _write_json
+    from tiledsm.synth.degrade import degrade
+
+    out = Path(out)
+    cluster = cluster or ClusterConfig(scheduler=recipe.cluster.scheduler, workers=recipe.cluster.workers)
+    sr = recipe.sr
+    s = sr.scale
+    border = s if sr.border is None else sr.border
+    peak = float(2**sr.bit_depth - 1)
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    views, info = _hr_pair(recipe, out)
+    metrics: dict = {
+        "pipeline": "sr_dsm", "name": recipe.name, "input": info["description"],
+        "sr": {**sr.model_dump(), "border": border},
+    }
+    with _shared_cluster(cluster) as run_cluster:
+        # 1. reference DSM from the HR pair, on G
+        grid = _target_grid(recipe, info)
+        log.info("sr_dsm: DSM of the HR pair")
+        t0 = time.perf_counter()
+        hr_height, hr_report = _make_dsm(views, grid, recipe, out / "hr", run_cluster, overwrite)
+        timings["hr"] = time.perf_counter() - t0
+        if grid is None:
+            grid = GroundGrid.like(hr_height, chunk=recipe.grid.chunk)
+        metrics["grid"] = {"crs": grid.crs, "resolution": grid.resolution, "width": grid.width, "height": grid.height}
+        refs: dict = {}
+        if "truth" in info:
+            truth = _reference_on_grid(info["truth"], hr_height)
+            visible = _reference_on_grid(info["visible"], hr_height).values > 0.5
+            refs["vs_truth_visible"] = (truth, visible)
+            metrics["truth"] = str(info["truth"])
+        if "reference" in info:
+            refs["vs_reference"] = (_reference_on_grid(info["reference"], hr_height), None)
+            metrics["reference"] = str(info["reference"])
+        metrics["hr"] = {"dsm": hr_report, **_scores(hr_height, hr_height, refs)}
+        # 2. LR pair
+        t0 = time.perf_counter()
+        lr_views = []
+        for i, v in enumerate(views):
+            target = out / "lr" / f"view_{i}.tif"
+            target.parent.mkdir(parents=True, exist_ok=True)
+            lr_views.append(degrade(v, target, scale=s, method=sr.degrade, sigma=sr.degrade_sigma,
+                                    noise=sr.lr_noise, seed=i, bits=sr.bit_depth))
+        timings["lr"] = time.perf_counter() - t0
+        # 3. methods
+        hr_images = [_read_band(v) for v in views]
+        methods: dict[str, dict] = {}
+        for name in sr.models:
+            t0 = time.perf_counter()
+            folder = out / name
+            folder.mkdir(parents=True, exist_ok=True)
+            log.info("sr_dsm: method %s", name)
+            if name == UPSCALE:
+                lr_height, report = _make_dsm(lr_views, lr_grid(grid, s), recipe, out / "lr", run_cluster, overwrite)
+                height = upsample_dsm(lr_height, grid)
+                from tiledsm.io import write_cog
+
+                write_cog(height, folder / "dsm.tif")
+                row: dict = {"dsm": {**report, "lr_grid_resolution": grid.resolution * s}}
+            else:
+                sr_views = [_super_resolve_file(lv, folder / f"sr_view_{i}.tif", name, sr, run_cluster)
+                            for i, lv in enumerate(lr_views)]
+                per_view = [image_quality(h, _read_band(p), peak=peak, border=border) for h, p in zip(hr_images, sr_views)]
+                row = {"image": {
+                    "psnr_db": float(np.mean([q["psnr_db"] for q in per_view])),
+                    "ssim": float(np.mean([q["ssim"] for q in per_view])),
+                    "views": per_view,
+                }}
+                height, report = _make_dsm(sr_views, grid, recipe, folder, run_cluster, overwrite)
+                row["dsm"] = report
+            row.update(_scores(height, hr_height, refs))
+            methods[name] = row
+            timings[name] = time.perf_counter() - t0
+    metrics["methods"] = methods
+    timings["total"] = time.perf_counter() - t_start
+    metrics["timings"] = timings
+    _write_json(metrics, out / "metrics.json")
+    from tiledsm.io import atomic_path
+
+    with atomic_path(out / "report.md") as tmp:
+        Path(tmp).write_text(markdown_report(metrics))
+    log.info("sr_dsm: wrote %s", out / "report.md")
+    return metrics
+
+
+register_recipe("sr_dsm", SRDSMRecipe)
+
+# Registered last: tiledsm.pipelines imports this module at its end.
+from tiledsm.pipelines import _runner  # noqa: E402
+
+_runner("sr_dsm")(run_sr_dsm)

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from tiledsm.sr.models._layers import ReflectConv2d, conv_radius
+from tiledsm.sr.models._layers import BICUBIC_RADIUS, ReflectConv2d, bicubic_upsample, conv_radius
 from tiledsm.sr.models.base import SRModel
 
 __all__ = ["SRMD", "gaussian_kernel", "kernel_pca_basis", "KERNEL_SIZE"]
@@ -79,6 +79,11 @@ class SRMD(SRModel):
         Hidden channels (paper: 128).
     pca_dim : int
         Dimension ``t`` of the kernel code (paper: 15).
+    residual : bool
+        Add the bicubic upsampling of the LR image to the output (a global
+        skip, as in VDSR; the paper has none: ``False``). The last layer
+        then starts at zero, so the untrained network is exactly bicubic
+        and a short training schedule only has to learn the missing detail.
 
     Notes
     -----
@@ -89,21 +94,29 @@ class SRMD(SRModel):
 
     takes_degradation = True
 
-    def __init__(self, scale: int = 2, layers: int = 12, features: int = 128, pca_dim: int = 15) -> None:
+    def __init__(self, scale: int = 2, layers: int = 12, features: int = 128, pca_dim: int = 15, residual: bool = False) -> None:
         super().__init__(scale)
         if layers < 2:
             raise ValueError(f"SRMD: layers must be >= 2, got {layers}")
-        self.register_buffer("pca", torch.as_tensor(kernel_pca_basis(pca_dim), dtype=torch.float32))
+        # torch.tensor copies: the cached basis is read-only (as_tensor warned)
+        self.register_buffer("pca", torch.tensor(kernel_pca_basis(pca_dim), dtype=torch.float32))
         mods: list[nn.Module] = [ReflectConv2d(1 + pca_dim + 1, features, 3), nn.ReLU(inplace=True)]
         for _ in range(layers - 2):
             mods += [ReflectConv2d(features, features, 3, bias=False), nn.BatchNorm2d(features), nn.ReLU(inplace=True)]
-        mods += [ReflectConv2d(features, self.scale**2, 3), nn.PixelShuffle(self.scale)]
+        last = ReflectConv2d(features, self.scale**2, 3)
+        mods += [last, nn.PixelShuffle(self.scale)]
         self.body = nn.Sequential(*mods)
+        self.residual = bool(residual)
+        if self.residual:
+            nn.init.zeros_(last.weight)
+            nn.init.zeros_(last.bias)
 
     @property
     def halo(self) -> int:
-        # everything happens on the LR grid; pixel shuffle is local
-        return conv_radius(self.body)
+        # everything happens on the LR grid; pixel shuffle is local; the
+        # bicubic skip has edge effects up to BICUBIC_RADIUS LR px
+        r = conv_radius(self.body)
+        return max(r, BICUBIC_RADIUS) if self.residual else r
 
     def degradation_code(self, blur_sigma: float, noise: float) -> torch.Tensor:
         """The ``t + 1`` degradation values (PCA code of the kernel, noise)."""
@@ -119,4 +132,5 @@ class SRMD(SRModel):
         else:
             code = self.degradation_code(float(blur_sigma), float(noise)).expand(n, -1)
         maps = code[:, :, None, None].expand(n, code.shape[1], h, w).to(x.dtype)
-        return self.body(torch.cat([x, maps], dim=1))
+        out = self.body(torch.cat([x, maps], dim=1))
+        return out + bicubic_upsample(x, self.scale) if self.residual else out
