@@ -39,7 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks._measure import measure  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
-DATA = REPO.parent / "shared" / "data"
+DATA = Path(os.environ.get("TILEDSM_SHARED_DATA", REPO.parent / "shared" / "data"))
 TILEDSM = Path(sys.executable).parent / "tiledsm"
 
 

@@ -459,6 +459,15 @@ def dsm_from_pair(
         h_range, views, report = scene_height_range(views, params)
     else:
         h_range, report = tuple(params.height_range), {"height_range_m": list(params.height_range)}
+        if params.relative_correction:
+            # the range is given, but the relative pointing error still needs tie points;
+            # a given range is often the answer to tie points failing, so failing here is not fatal
+            try:
+                _, views, tie_report = scene_height_range(views, params)
+                report.update({k: v for k, v in tie_report.items() if k != "height_range_m"})
+            except MatchingError as exc:
+                log.warning("no relative correction: %s", exc)
+                report["relative_correction"] = f"not applied: {exc}"
     report["preparation_s"] = time.perf_counter() - t0
     if grid is None:
         grid = default_grid(views, h_range, params)

@@ -190,6 +190,11 @@ def run_dsm(recipe: DSMRecipe, out: Path, cluster: ClusterConfig | None = None, 
         ref = _reference_on_grid(reference, height)
         metrics["reference"] = str(reference)
         metrics["vs_reference"] = dsm_metrics(height, ref)
+        if recipe.output.quicklook:
+            from tiledsm.quicklook import quicklook
+
+            error = height.copy(data=height.values - ref.values)  # same grid; no coordinate alignment
+            quicklook(error, out / "dsm_error.png", kind="difference", title="DSM - reference (m)", dsm=ref)
         if truth_mask is not None:
             mask = _reference_on_grid(truth_mask, height)
             metrics["vs_reference_visible"] = dsm_metrics(height, ref, mask=np.asarray(mask.values > 0.5))

@@ -37,10 +37,26 @@ def test_degradations():
     # a constant image stays constant (antialiased kernel sums to 1)
     np.testing.assert_allclose(degrade_bicubic(torch.full((1, 1, 8, 8), 0.3), 2).numpy(), 0.3, atol=1e-6)
     # blur + direct downsampling without noise == scipy-free numpy oracle at one pixel
-    out = degrade_blur_noise(hr, 2, torch.tensor([1.5]), torch.tensor([0.0]))
+    out = degrade_blur_noise(hr, 2, torch.tensor([1.5]), torch.tensor([0.0]), centred=False)
     k = gaussian_kernel(1.5)
     i, j = 10, 12  # LR pixel -> HR centre (2i + 1, 2j + 1)
     patch = hr[0, 0, 2 * i + 1 - 7 : 2 * i + 1 + 8, 2 * j + 1 - 7 : 2 * j + 1 + 8].numpy()
     assert float(out[0, 0, i, j]) == pytest.approx(float((patch * k).sum()), abs=1e-5)
-    noisy = degrade_blur_noise(hr, 2, torch.tensor([1.5]), torch.tensor([0.05]), torch.Generator().manual_seed(0))
+    noisy = degrade_blur_noise(hr, 2, torch.tensor([1.5]), torch.tensor([0.05]), torch.Generator().manual_seed(0), centred=False)
     assert float((noisy - out).std()) == pytest.approx(0.05, rel=0.1)
+
+
+@pytest.mark.parametrize("scale", [2, 3, 4])
+def test_centred_blur_noise_samples_lr_pixel_centres(scale):
+    """Default sampling: LR pixel j sits at HR index coordinate (j + 0.5) s - 0.5
+    (the corner convention of the RPCs). A symmetric blur keeps a ramp a ramp,
+    so the LR value is the ramp at that point (analytic oracle)."""
+    n = 16 * scale
+    r, c = np.meshgrid(np.arange(n, dtype=np.float64), np.arange(n, dtype=np.float64), indexing="ij")
+    hr = torch.from_numpy(0.003 * r + 0.005 * c)[None, None]
+    lr = degrade_blur_noise(hr, scale, torch.tensor([1.2]), torch.tensor([0.0]))[0, 0].numpy()
+    j = np.arange(lr.shape[0])
+    centre = (j + 0.5) * scale - 0.5
+    expect = 0.003 * centre[:, None] + 0.005 * centre[None, :]
+    inner = slice(4, -4)  # away from the reflected border
+    np.testing.assert_allclose(lr[inner, inner], expect[inner, inner], atol=1e-6)

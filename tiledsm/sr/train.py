@@ -22,10 +22,10 @@ Degradations (applied to random HR patches on the fly):
   ``centred=True`` the blur kernel is shifted so that LR pixel ``j`` samples
   HR index coordinate ``(j + 0.5) s - 0.5``: the corner convention of
   :mod:`tiledsm.synth.degrade` and of the RPC that
-  :func:`~tiledsm.sr.infer.super_resolve` attaches. Without it (the
-  default, kept for compatibility) the samples sit half an HR pixel off
-  that convention for even scales, and a network trained so shifts its
-  output by half an HR pixel against its RPC.
+  :func:`~tiledsm.sr.infer.super_resolve` attaches; this is the default.
+  ``centred=False`` takes pixels ``s//2::s``, half an HR pixel off that
+  convention for even scales: a network trained so shifts its output by
+  half an HR pixel against its RPC.
 
 All images are normalised to [0, 1] (8-bit sources divided by 255).
 """
@@ -124,7 +124,7 @@ class TrainConfig:
     degradation: str | None = None
     blur_range: tuple[float, float] = (0.2, 2.6)
     noise_range: tuple[float, float] = (0.0, 25.0 / 255.0)
-    centred: bool = False
+    centred: bool = True
     half: bool = False
     params: dict = field(default_factory=dict)
     threads: int = 1
@@ -240,7 +240,7 @@ def _sampling_kernel(sigma: float, scale: int, centred: bool) -> np.ndarray:
 
 
 def degrade_blur_noise(hr: torch.Tensor, scale: int, sigma: torch.Tensor, noise: torch.Tensor, gen: torch.Generator | None = None,
-                       centred: bool = False) -> torch.Tensor:
+                       centred: bool = True) -> torch.Tensor:
     """SRMD degradation per batch item: Gaussian blur (``sigma[i]`` HR px,
     reflect border), direct downsampling (pixels ``s//2::s``; with
     ``centred``, at the LR pixel centres ``(j + 0.5) s - 0.5``), white noise
@@ -272,7 +272,7 @@ def _sample_patches(images, n: int, size: int, rng: np.random.Generator) -> torc
 
 # ------------------------------------------------------------ evaluation
 def evaluate(model, scale: int, images: dict[str, np.ndarray] | None = None, degradation: str = "bicubic",
-             blur_sigma: float = 1.0, noise: float = 0.0, centred: bool = False) -> dict[str, dict[str, float]]:
+             blur_sigma: float = 1.0, noise: float = 0.0, centred: bool = True) -> dict[str, dict[str, float]]:
     """PSNR (8-bit peak, border = scale cropped) of ``model`` and of bicubic
     on held-out images degraded like the training data.
 
