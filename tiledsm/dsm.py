@@ -349,37 +349,91 @@ def _grid_centre_lonlat(grid: GroundGrid) -> tuple[float, float]:
     return float(lon), float(lat)
 
 
-def _level_array(
+@dataclass(frozen=True)
+class _Level:
+    """The tasks of one pyramid level: ``blocks[i][j]`` is the delayed
+    ``(2, rows, cols)`` result of chunk ``(i, j)``, whose cells are
+    ``windows[i][j] = (row0, row1, col0, col1)`` of the level grid."""
+
+    blocks: list
+    windows: list
+
+    def parts(self, rows: tuple[int, int], cols: tuple[int, int]) -> list:
+        """``(block, (row0, col0))`` of every chunk overlapping the cells
+        ``rows x cols`` (half-open)."""
+        out = []
+        for line_b, line_w in zip(self.blocks, self.windows):
+            for b, (r0, r1, c0, c1) in zip(line_b, line_w):
+                if r0 < rows[1] and r1 > rows[0] and c0 < cols[1] and c1 > cols[0]:
+                    out.append((b, (r0, c0)))
+        return out
+
+
+def _assemble(parts: list, rows: tuple[int, int], cols: tuple[int, int]) -> np.ndarray:
+    """Heights (band 0) of the cells ``rows x cols`` from computed chunks
+    ``(array, (row0, col0))``; NaN where no chunk covers a cell."""
+    out = np.full((rows[1] - rows[0], cols[1] - cols[0]), np.nan, np.float32)
+    for arr, (r0, c0) in parts:
+        h = arr[0]
+        a0, a1 = max(rows[0], r0), min(rows[1], r0 + h.shape[0])
+        b0, b1 = max(cols[0], c0), min(cols[1], c0 + h.shape[1])
+        if a1 > a0 and b1 > b0:
+            out[a0 - rows[0] : a1 - rows[0], b0 - cols[0] : b1 - cols[0]] = h[a0 - r0 : a1 - r0, b0 - c0 : b1 - c0]
+    return out
+
+
+def _match_chunk_from_parts(views, grid, window, level, halo, h_range, step, params, parts, rows, cols):
+    """:func:`_match_chunk` with the coarser heights given as computed chunks."""
+    coarse = None if parts is None else _assemble(parts, rows, cols)
+    return _match_chunk(views, grid, window, level, halo, h_range, step, params, coarse)
+
+
+def _level_tasks(
     views: Sequence[View],
     grid: GroundGrid,
     level: int,
     h_range: tuple[float, float],
     params: DSMParams,
-    coarse: da.Array | None,
-) -> da.Array:
-    """Lazy ``(2, height, width)`` array of one pyramid level, one task per chunk.
+    coarse: _Level | None,
+) -> _Level:
+    """The tasks of one pyramid level, one per chunk of ``grid``.
 
     A chunk of a finer level depends only on the coarser-level chunks under
-    its footprint + halo (a slice of the coarser dask array).
+    its footprint + halo, passed as the coarser tasks themselves (not as a
+    slice of a dask array: ``dask.delayed`` would optimise such a slice into
+    each dependant and recompute the coarser chunk once per finer chunk).
     """
     halo = params.halo()
     step = _level_step(views, grid, level, h_range, params)
-    task = dask.delayed(_match_chunk, pure=True)
+    task = dask.delayed(_match_chunk_from_parts, pure=True)
     nby, nbx = grid.numblocks
-    blocks = []
+    blocks, windows = [], []
     for i in range(nby):
-        line = []
+        line_b, line_w = [], []
         for j in range(nbx):
             r0, r1, c0, c1 = grid.block_window(i, j)
-            coarse_part = None
+            parts = rows = cols = None
             if coarse is not None:
                 hr0, hr1 = max(0, r0 - halo), min(grid.height, r1 + halo)
                 hc0, hc1 = max(0, c0 - halo), min(grid.width, c1 + halo)
-                coarse_part = coarse[hr0 // 2 : -(-hr1 // 2), hc0 // 2 : -(-hc1 // 2)]
-            d = task(views, grid, (r0, r1, c0, c1), level, halo, h_range, step, params, coarse_part)
-            line.append(da.from_delayed(d, shape=(2, r1 - r0, c1 - c0), dtype=np.float32))
-        blocks.append(line)
-    return da.block(blocks)
+                rows, cols = (hr0 // 2, -(-hr1 // 2)), (hc0 // 2, -(-hc1 // 2))
+                parts = coarse.parts(rows, cols)
+            d = task(views, grid, (r0, r1, c0, c1), level, halo, h_range, step, params, parts, rows, cols)
+            line_b.append(d)
+            line_w.append((r0, r1, c0, c1))
+        blocks.append(line_b)
+        windows.append(line_w)
+    return _Level(blocks, windows)
+
+
+def _level_array(level: _Level) -> da.Array:
+    """Lazy ``(2, height, width)`` array of a level's tasks."""
+    return da.block(
+        [
+            [da.from_delayed(b, shape=(2, r1 - r0, c1 - c0), dtype=np.float32) for b, (r0, r1, c0, c1) in zip(lb, lw)]
+            for lb, lw in zip(level.blocks, level.windows)
+        ]
+    )
 
 
 def auto_levels(views: Sequence[View], grid: GroundGrid, h_range: tuple[float, float], params: DSMParams) -> int:
@@ -409,12 +463,11 @@ def dsm_from_views(
     """
     if h_range[1] <= h_range[0]:
         raise MatchingError(f"empty height range {h_range}")
-    coarse = None
+    tasks = None
     levels = params.levels or auto_levels(views, grid, h_range, params)
     for level in range(levels - 1, -1, -1):
-        g = _level_grid(grid, level)
-        arr = _level_array(views, g, level, h_range, params, coarse)
-        coarse = arr[0]
+        tasks = _level_tasks(views, _level_grid(grid, level), level, h_range, params, tasks)
+    arr = _level_array(tasks)
     # the finest level is on `grid` itself; its chunks are the grid's
     ds = xr.Dataset(
         {

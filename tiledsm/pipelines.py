@@ -134,9 +134,9 @@ def write_dsm_products(
 @_runner("dsm")
 def run_dsm(recipe: DSMRecipe, out: Path, cluster: ClusterConfig | None = None, overwrite: bool = False) -> dict:
     """Views (or a synthetic scene) -> DSM products and metrics."""
-    from tiledsm.dsm import DSMParams, dsm_from_pair
+    from tiledsm.dsm import dsm_from_pair
     from tiledsm.geometry.grid import GroundGrid
-    from tiledsm.match.sgvll import SGVLLParams
+    from tiledsm.recipes import dsm_params
 
     cluster = cluster or ClusterConfig(scheduler=recipe.cluster.scheduler, workers=recipe.cluster.workers)
     t_start = time.perf_counter()
@@ -160,16 +160,7 @@ def run_dsm(recipe: DSMRecipe, out: Path, cluster: ClusterConfig | None = None, 
         grid = GroundGrid.like(g.like, chunk=g.chunk)
     elif g.bounds:
         grid = GroundGrid.from_bounds(g.crs, g.bounds, g.resolution, chunk=g.chunk)
-    m = recipe.match
-    params = DSMParams(
-        resolution=g.resolution,
-        chunk=g.chunk,
-        levels=m.levels,
-        height_range=m.height_range,
-        height_margin=m.height_margin,
-        relative_correction=m.relative_correction,
-        match=SGVLLParams(**m.params),
-    )
+    params = dsm_params(g, recipe.match)
     ds, report = dsm_from_pair(*images, rpcs=rpcs, grid=grid, params=params)
     if recipe.output.geoid:
         from tiledsm.dsm import heights_above_geoid

@@ -81,6 +81,23 @@ class MatchSpec(_Strict):
     params: dict[str, Any] = Field(default_factory=dict, description="SGVLLParams fields")
 
 
+def dsm_params(grid: GridSpec, match: MatchSpec, *, resolution: float | None = None, chunk: int | None = None):
+    """:class:`tiledsm.dsm.DSMParams` of a recipe's ``grid`` and ``match``
+    sections (``resolution`` and ``chunk`` override the grid's)."""
+    from tiledsm.dsm import DSMParams
+    from tiledsm.match.sgvll import SGVLLParams
+
+    return DSMParams(
+        resolution=resolution if resolution is not None else grid.resolution,
+        chunk=chunk if chunk is not None else grid.chunk,
+        levels=match.levels,
+        height_range=match.height_range,
+        height_margin=match.height_margin,
+        relative_correction=match.relative_correction,
+        match=SGVLLParams(**match.params),
+    )
+
+
 class ClusterSpec(_Strict):
     scheduler: Optional[str] = Field(None, description="None: local cluster; 'synchronous'; or tcp://host:port")
     workers: Optional[int] = Field(None, ge=1)

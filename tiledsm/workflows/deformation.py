@@ -401,14 +401,9 @@ def _check_post_sees_grid(images, rpcs, h_range, grid, pre_images) -> None:
 
 
 def _dsm_params(recipe: DeformationRecipe):
-    from tiledsm.dsm import DSMParams
-    from tiledsm.match.sgvll import SGVLLParams
+    from tiledsm.recipes import dsm_params
 
-    g, m = recipe.grid, recipe.match
-    return DSMParams(
-        resolution=g.resolution, chunk=g.chunk, levels=m.levels, height_range=m.height_range,
-        height_margin=m.height_margin, relative_correction=m.relative_correction, match=SGVLLParams(**m.params),
-    )
+    return dsm_params(recipe.grid, recipe.match)
 
 
 def _fault_from_trace(spec: FaultSpec, crs: str) -> Fault:

@@ -326,20 +326,11 @@ def _shared_cluster(config: ClusterConfig) -> Iterator[ClusterConfig]:
 
 
 def _dsm_params(recipe: SRDSMRecipe, grid: GroundGrid | None):
-    from tiledsm.dsm import DSMParams
-    from tiledsm.match.sgvll import SGVLLParams
+    from tiledsm.recipes import dsm_params
 
-    m = recipe.match
-    chunk = grid.chunk if grid is not None else recipe.grid.chunk
-    return DSMParams(
-        resolution=grid.resolution if grid is not None else recipe.grid.resolution,
-        chunk=max(32, chunk // 2 * 2),
-        levels=m.levels,
-        height_range=m.height_range,
-        height_margin=m.height_margin,
-        relative_correction=m.relative_correction,
-        match=SGVLLParams(**m.params),
-    )
+    if grid is None:
+        return dsm_params(recipe.grid, recipe.match)
+    return dsm_params(recipe.grid, recipe.match, resolution=grid.resolution, chunk=max(32, grid.chunk // 2 * 2))
 
 
 def _make_dsm(views, grid, recipe, folder: Path, cluster: ClusterConfig, overwrite: bool) -> tuple[xr.DataArray, dict]:
