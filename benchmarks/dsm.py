@@ -32,6 +32,7 @@ import datetime as _dt
 import json
 import os
 import platform
+import shutil
 import sys
 from pathlib import Path
 
@@ -67,6 +68,7 @@ def _case_synth(run_dir: Path, size: int) -> tuple[list[str], dict]:
 def run_case(name: str, workers: int, run_dir: Path, chunk: int, timeout: float) -> dict:
     args, info = _case_s2p(run_dir) if name == "s2p" else _case_synth(run_dir, int(name.removeprefix("synth")))
     out = run_dir / f"{name}_w{workers}"
+    shutil.rmtree(out, ignore_errors=True)  # a finished store would be resumed, not recomputed
     argv = [str(TILEDSM), "dsm", *args, "--out", str(out), "--workers", str(workers), "--chunk", str(chunk), "--no-progress"]
     m = measure(argv, log=run_dir / f"{name}_w{workers}.log", timeout=timeout)
     row = {"case": name, "workers": workers, "chunk": chunk, **info, "measurement": m.to_dict()}
