@@ -70,6 +70,9 @@ class Measurement:
         re-parenting, short by at most ``interval`` per process.
     peak_rss_mib, peak_pss_mib, peak_single_rss_mib : float or None
         See the module docstring. ``peak_pss_mib`` is ``None`` without ``smaps_rollup``.
+    peak_root_rss_mib, peak_descendant_rss_mib : float
+        Peak RSS of the command's own process (e.g. a dask client) and of its largest
+        descendant (e.g. one dask worker), MiB.
     max_processes : int
         Largest number of live processes seen in the tree at once.
     samples : int
@@ -93,6 +96,8 @@ class Measurement:
     peak_rss_mib: float
     peak_pss_mib: float | None
     peak_single_rss_mib: float
+    peak_root_rss_mib: float
+    peak_descendant_rss_mib: float
     max_processes: int
     samples: int
     interval_s: float
@@ -169,7 +174,9 @@ def _sample(pid: int) -> tuple[int, int | None, tuple[int, int], int] | None:
     return rss, pss, key, ticks
 
 
-def tree_memory(root: int, cpu_ticks: dict | None = None) -> tuple[float, float | None, float, int]:
+def tree_memory(
+    root: int, cpu_ticks: dict | None = None, split: dict | None = None
+) -> tuple[float, float | None, float, int]:
     """One sample of the memory of ``root``'s process tree.
 
     Parameters
@@ -180,6 +187,9 @@ def tree_memory(root: int, cpu_ticks: dict | None = None) -> tuple[float, float 
         Updated in place: ``(pid, start time) -> utime + stime`` (clock ticks) of every process
         seen, so that the CPU time of processes that later exit (or get re-parented away) stays
         counted.
+    split : dict, optional
+        Filled with ``root_rss_mib`` (the command's own process, e.g. a dask client) and
+        ``max_descendant_rss_mib`` (its largest descendant, e.g. a worker) of this sample.
 
     Returns
     -------
@@ -193,11 +203,16 @@ def tree_memory(root: int, cpu_ticks: dict | None = None) -> tuple[float, float 
         Number of live processes sampled.
     """
     rss_sum, pss_sum, single, n, pss_ok = 0, 0, 0, 0, True
+    root_rss, child_rss = 0, 0
     for pid in _tree(root):
         one = _sample(pid)
         if one is None:
             continue
         rss, pss, key, ticks = one
+        if pid == root:
+            root_rss = rss
+        else:
+            child_rss = max(child_rss, rss)
         if cpu_ticks is not None:
             cpu_ticks[key] = ticks
         n += 1
@@ -207,6 +222,8 @@ def tree_memory(root: int, cpu_ticks: dict | None = None) -> tuple[float, float 
             pss_ok = False
         else:
             pss_sum += pss
+    if split is not None:
+        split.update(root_rss_mib=root_rss / _MIB, max_descendant_rss_mib=child_rss / _MIB)
     return rss_sum / _MIB, (pss_sum / _MIB if pss_ok and n else None), single / _MIB, n
 
 
@@ -251,15 +268,18 @@ def measure(
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     load_before = os.getloadavg()[0]
     peak_rss, peak_pss, peak_single, max_n, samples = 0.0, None, 0.0, 0, 0
+    peak_root, peak_child, split = 0.0, 0.0, {}
     cpu_ticks: dict[tuple[int, int], int] = {}
     timed_out = False
     try:
         t0 = time.perf_counter()
         proc = subprocess.Popen(argv, cwd=cwd, env=None if env is None else dict(env), stdout=out, stderr=subprocess.STDOUT)
         while True:
-            rss, pss, single, n = tree_memory(proc.pid, cpu_ticks)
+            rss, pss, single, n = tree_memory(proc.pid, cpu_ticks, split)
             if n:
                 samples += 1
+                peak_root = max(peak_root, split["root_rss_mib"])
+                peak_child = max(peak_child, split["max_descendant_rss_mib"])
                 peak_rss, peak_single, max_n = max(peak_rss, rss), max(peak_single, single), max(max_n, n)
                 if pss is not None:  # a sample where some process lacked PSS (e.g. exiting) is skipped
                     peak_pss = max(peak_pss or 0.0, pss)
@@ -291,6 +311,8 @@ def measure(
         peak_rss_mib=peak_rss,
         peak_pss_mib=peak_pss,
         peak_single_rss_mib=peak_single,
+        peak_root_rss_mib=peak_root,
+        peak_descendant_rss_mib=peak_child,
         max_processes=max_n,
         samples=samples,
         interval_s=interval,

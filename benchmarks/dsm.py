@@ -11,11 +11,12 @@ measured by :mod:`benchmarks._measure`):
   against the truth on visible ground.
 
 For every case and worker count: wall time of the whole command, the DSM
-stage's own matching time (``timings.match_s`` of ``metrics.json``), output
-Mcells per second of matching, peak memory of the largest single process
-(``peak_single_rss_mib``: a worker or the client) and of the whole tree
-(PSS, shared pages split), and the speed-up of 2 workers over 1 measured in
-the same run. Load averages before and after each measurement are recorded:
+stage's own matching time (``timings.match_s`` of ``metrics.json``: cluster
+start included), output Mcells per second of matching, peak memory of one
+worker (the largest descendant process), of the client (the command's own
+process: tie points, then the metrics against the reference, in memory) and
+of the whole tree (PSS, shared pages split), and the speed-up of 2 workers
+over 1 measured in the same run. Load averages before and after each measurement are recorded:
 on a shared machine other work stretches wall times.
 
 Usage::
@@ -88,19 +89,23 @@ def run_case(name: str, workers: int, run_dir: Path, chunk: int, timeout: float)
 
 
 def format_table(rows: list[dict]) -> str:
-    head = "| case | workers | cells | wall (s) | match (s) | Mcells/s | speed-up vs 1 | peak process (MiB) | tree PSS (MiB) | NMAD (m) | completeness |"
+    head = (
+        "| case | workers | cells | wall (s) | match (s) | Mcells/s | speed-up vs 1 | peak per worker (MiB) "
+        "| peak client (MiB) | tree PSS (MiB) | NMAD (m) | completeness |"
+    )
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     base = {r["case"]: r for r in rows if r["workers"] == 1 and "match_s" in r}
     for r in rows:
         m = r["measurement"]
         if "match_s" not in r:
-            lines.append(f"| {r['case']} | {r['workers']} | failed (rc {m['returncode']}) |||||||||")
+            lines.append(f"| {r['case']} | {r['workers']} | failed (rc {m['returncode']}) ||||||||||")
             continue
         b = base.get(r["case"])
         speed = f"{b['match_s'] / r['match_s']:.2f}" if b else "-"
         lines.append(
             f"| {r['case']} | {r['workers']} | {r['cells'] / 1e6:.2f} M | {m['wall_s']:.1f} | {r['match_s']:.1f} | "
-            f"{r['mcells_per_s']:.3f} | {speed} | {m['peak_single_rss_mib']:.0f} | {m['peak_pss_mib'] or float('nan'):.0f} | "
+            f"{r['mcells_per_s']:.3f} | {speed} | {m['peak_descendant_rss_mib']:.0f} | {m['peak_root_rss_mib']:.0f} | "
+            f"{m['peak_pss_mib'] or float('nan'):.0f} | "
             f"{r['nmad_m']:.3f} | {r['completeness']:.3f} |"
         )
     return "\n".join(lines)
