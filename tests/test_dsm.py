@@ -265,5 +265,5 @@ def test_cli_dsm_s2p_pair_against_s2p(shared_data, tmp_path):
     import json
 
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["vs_reference"]["nmad"] == pytest.approx(nmad(d), abs=1e-3)
+    assert metrics["vs_reference"]["nmad"] == pytest.approx(nmad(d), abs=2e-3)  # histogram median: sub-mm bins
     assert (out / "dsm.png").stat().st_size > 10_000

@@ -178,22 +178,30 @@ def run_dsm(recipe: DSMRecipe, out: Path, cluster: ClusterConfig | None = None, 
     metrics["completeness"] = float(np.isfinite(height.data).mean().compute())
     metrics["completeness_in_footprint"] = _footprint_completeness(height, images, rpcs, report["height_range_m"])
     if reference:
-        ref = _reference_on_grid(reference, height)
+        # chunk by chunk: the client never holds the whole DSM or reference
+        from tiledsm.compare.accuracy import reference_accuracy
+
         metrics["reference"] = str(reference)
-        metrics["vs_reference"] = dsm_metrics(height, ref)
+        metrics["vs_reference"], error = reference_accuracy(height, reference, chunks=grid_chunk(height))
         if recipe.output.quicklook:
             from tiledsm.quicklook import quicklook
 
-            error = height.copy(data=height.values - ref.values)  # same grid; no coordinate alignment
-            quicklook(error, out / "dsm_error.png", kind="difference", title="DSM - reference (m)", dsm=ref)
+            r0, r1, c0, c1 = error.attrs["window"]
+            quicklook(error, out / "dsm_error.png", kind="difference", title="DSM - reference (m)", dsm=height[r0:r1, c0:c1])
         if truth_mask is not None:
-            mask = _reference_on_grid(truth_mask, height)
-            metrics["vs_reference_visible"] = dsm_metrics(height, ref, mask=np.asarray(mask.values > 0.5))
+            metrics["vs_reference_visible"], _ = reference_accuracy(
+                height, reference, truth_mask, chunks=grid_chunk(height)
+            )
     metrics["timings"]["total_s"] = time.perf_counter() - t_start
     metrics["output_mpx_per_s"] = height.size / 1e6 / max(timings["match_s"], 1e-9)
     _write_json(metrics, out / "metrics.json")
     log.info("metrics: %s", json.dumps(metrics))
     return metrics
+
+
+def grid_chunk(arr: xr.DataArray) -> int:
+    """Chunk edge of a dask-backed ``(y, x)`` array (1024 when in memory)."""
+    return int(arr.chunks[0][0]) if arr.chunks else 1024
 
 
 def _footprint_completeness(height: xr.DataArray, images, rpcs, h_range) -> float:
@@ -206,7 +214,7 @@ def _footprint_completeness(height: xr.DataArray, images, rpcs, h_range) -> floa
     step = max(1, int(np.ceil(np.sqrt(height.size / 1e6))))
     views = open_views(images, rpcs)
     inside = footprint_mask(grid, views, float(np.mean(h_range)), step)
-    sample = np.isfinite(height.values[::step, ::step])
+    sample = np.isfinite(height[::step, ::step].values)
     return float(sample[inside].mean()) if inside.any() else 0.0
 
 
