@@ -25,7 +25,7 @@ import numpy as np
 import xarray as xr
 
 from tiledsm.compare.align import align_dsms, open_dsm
-from tiledsm.compare.stats import HistogramStats
+from tiledsm.compare.stats import HistogramStats, merge_partials
 
 __all__ = ["reference_accuracy"]
 
@@ -34,15 +34,6 @@ def _partial(d: np.ndarray, ref: np.ndarray, mask: np.ndarray, hs: HistogramStat
     evaluated = np.isfinite(ref) & mask
     members = np.stack([evaluated])
     return hs.block(np.where(evaluated, d, np.nan), ref, members, members)
-
-
-def _merge_all(parts: list):
-    while len(parts) > 1:
-        parts = [
-            dask.delayed(HistogramStats.merge, pure=True)(parts[i], parts[i + 1]) if i + 1 < len(parts) else parts[i]
-            for i in range(0, len(parts), 2)
-        ]
-    return parts[0]
 
 
 def reference_accuracy(
@@ -103,7 +94,7 @@ def reference_accuracy(
     hs = HistogramStats(("all",), float(lo) - pad, float(hi) + pad, bins)
     dd, rd, kd = (a.to_delayed().ravel() for a in (d, r, keep))
     parts = [dask.delayed(_partial, pure=True)(a, b, c, hs) for a, b, c in zip(dd, rd, kd)]
-    total = dask.compute(_merge_all(parts))[0]
+    total = dask.compute(merge_partials(parts))[0]
     stats = hs.finalize(total)["all"]
     difference = pair.ref.copy(data=d)
     difference.attrs = {"long_name": "DSM - reference", "units": "m", "window": tuple(pair.ref_window)}

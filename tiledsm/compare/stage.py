@@ -57,7 +57,7 @@ from tiledsm.compare.coreg import (
     shift_halo,
 )
 from tiledsm.compare.stable import exclusion_mask, exclusion_mask_lazy, read_polygons, stable_cells
-from tiledsm.compare.stats import SLOPE_CLASSES, HistogramStats, slope_class_labels
+from tiledsm.compare.stats import SLOPE_CLASSES, HistogramStats, merge_partials, slope_class_labels
 from tiledsm.compare.terrain import metric_steps, slope_percent
 from tiledsm.errors import InputFileError, NoOverlapError, TiledsmError
 
@@ -278,15 +278,6 @@ def _stats_block(dh, ref, layers, hs: HistogramStats, nclass: int):
     return hs.block(dh, ref, np.stack(members), np.broadcast_to(evaluated, (len(members),) + dh.shape))
 
 
-def _tree_merge(parts):
-    while len(parts) > 1:
-        parts = [
-            dask.delayed(HistogramStats.merge, pure=True)(parts[i], parts[i + 1]) if i + 1 < len(parts) else parts[i]
-            for i in range(0, len(parts), 2)
-        ]
-    return parts[0]
-
-
 # --------------------------------------------------------------------------- stage
 def _as_input(x, chunks):
     if isinstance(x, (str, os.PathLike)):
@@ -425,7 +416,7 @@ def _write_products(ds, pair, coreg, geoms, params, staging: Path, t0: float, t_
         dask.delayed(_stats_block, pure=True)(d, r, l, hs, len(labels))
         for d, r, l in zip(dh_d.to_delayed().ravel(), ref_d.to_delayed().ravel(), lay.to_delayed().ravel())
     ]
-    (part,) = dask.compute(_tree_merge(parts))
+    (part,) = dask.compute(merge_partials(parts))
     stats = hs.finalize(part)
     n_all = stats["all"]["count"]
     for name, st in stats.items():

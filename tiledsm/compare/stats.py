@@ -30,6 +30,7 @@ import numpy as np
 __all__ = [
     "difference_statistics",
     "HistogramStats",
+    "merge_partials",
     "SLOPE_CLASSES",
     "slope_class_labels",
 ]
@@ -223,3 +224,17 @@ class HistogramStats:
         w = (self.hi - self.lo) / self.bins
         centres = self.lo + (np.arange(self.bins) + 0.5) * w
         return np.histogram(centres, bins=nbins, range=(lo, hi), weights=inner)
+
+
+def merge_partials(parts: list):
+    """Pairwise (tree) reduction of delayed :class:`HistogramStats` partials
+    into one delayed total (depth ``log2(len(parts))``, so no task receives
+    every block at once)."""
+    import dask
+
+    while len(parts) > 1:
+        parts = [
+            dask.delayed(HistogramStats.merge, pure=True)(parts[i], parts[i + 1]) if i + 1 < len(parts) else parts[i]
+            for i in range(0, len(parts), 2)
+        ]
+    return parts[0]
