@@ -65,6 +65,10 @@ def main(argv=None) -> int:
            "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},
            "results": rows}
     out = Path(__file__).resolve().parent / "results" / "synth.json"
+    if out.exists():  # keep the rows of sizes not measured by this run
+        measured = {r["size"] for r in rows}
+        kept = [r for r in json.loads(out.read_text()).get("results", []) if r.get("size") not in measured]
+        doc["results"] = sorted(kept + rows, key=lambda r: r["size"])
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(doc, indent=2))
     print(f"wrote {out}")
