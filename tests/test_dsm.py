@@ -267,3 +267,16 @@ def test_cli_dsm_s2p_pair_against_s2p(shared_data, tmp_path):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["vs_reference"]["nmad"] == pytest.approx(nmad(d), abs=2e-3)  # histogram median: sub-mm bins
     assert (out / "dsm.png").stat().st_size > 10_000
+
+
+def test_default_grid_in_a_given_crs(scene):
+    """--crs without --bounds: the overlap of the views, in that CRS."""
+    from pyproj import Transformer
+
+    ds, report = dsm_from_pair(*scene.views, params=DSMParams(crs="EPSG:2154", resolution=1.0, height_range=scene.height_range))
+    assert report["grid"]["crs"] == "EPSG:2154" and report["grid"]["resolution"] == 1.0
+    assert ds.rio.crs.to_epsg() == 2154
+    # the grid covers the truth grid's centre (both views see it)
+    truth = GroundGrid.like(scene.truth_dsm)
+    x, y = Transformer.from_crs(truth.crs, "EPSG:2154", always_xy=True).transform(truth.x.mean(), truth.y.mean())
+    assert ds.x.min() < x < ds.x.max() and ds.y.min() < y < ds.y.max()

@@ -57,6 +57,9 @@ class DSMParams:
     ----------
     resolution : float or None
         Ground cell size, metres; ``None`` takes the mean GSD of the views.
+    crs : str or None
+        CRS of the default grid (when no grid is given; projected, metres);
+        ``None`` takes the UTM zone of the scene centre.
     chunk : int
         Chunk side of the output grid, cells.
     levels : int or None
@@ -84,6 +87,7 @@ class DSMParams:
     """
 
     resolution: float | None = None
+    crs: str | None = None
     chunk: int = 512
     levels: int | None = None
     max_candidates: int = 192
@@ -216,7 +220,8 @@ def scene_height_range(views: Sequence[View], params: DSMParams) -> tuple[tuple[
 
 
 def default_grid(views: Sequence[View], h_range: tuple[float, float], params: DSMParams) -> GroundGrid:
-    """Ground grid over the overlap of all views (UTM of the scene centre)."""
+    """Ground grid over the overlap of all views, in ``params.crs`` (default:
+    the UTM zone of the scene centre), cells of ``params.resolution``."""
     from tiledsm.geometry.footprint import overlap_lonlat_bounds
     from tiledsm.geometry.grid import GroundGrid, utm_crs
 
@@ -226,12 +231,16 @@ def default_grid(views: Sequence[View], h_range: tuple[float, float], params: DS
         lon0, lat0, lon1, lat1 = max(lon0, a[0]), max(lat0, a[1]), min(lon1, a[2]), min(lat1, a[3])
     if lon0 >= lon1 or lat0 >= lat1:
         raise NoOverlapError("the views have no ground in common: " + ", ".join(v.path for v in views))
-    crs = utm_crs((lon0 + lon1) / 2, (lat0 + lat1) / 2)
+    crs = params.crs or utm_crs((lon0 + lon1) / 2, (lat0 + lat1) / 2)
     res = params.resolution or _mean_gsd(views, sum(h_range) / 2)
     from pyproj import Transformer
 
     tr = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
-    xs, ys = tr.transform([lon0, lon1, lon0, lon1], [lat0, lat0, lat1, lat1])
+    # the densified lon/lat box: its edges are curved in a projected CRS
+    t = np.linspace(0.0, 1.0, 17)
+    lons = np.concatenate([lon0 + t * (lon1 - lon0), np.full(17, lon1), lon0 + t * (lon1 - lon0), np.full(17, lon0)])
+    lats = np.concatenate([np.full(17, lat0), lat0 + t * (lat1 - lat0), np.full(17, lat1), lat0 + t * (lat1 - lat0)])
+    xs, ys = tr.transform(lons, lats)
     bounds = (min(xs), min(ys), max(xs), max(ys))
     return GroundGrid.from_bounds(crs, bounds, res, chunk=params.chunk)
 

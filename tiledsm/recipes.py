@@ -89,6 +89,7 @@ def dsm_params(grid: GridSpec, match: MatchSpec, *, resolution: float | None = N
 
     return DSMParams(
         resolution=resolution if resolution is not None else grid.resolution,
+        crs=grid.crs,
         chunk=chunk if chunk is not None else grid.chunk,
         levels=match.levels,
         height_range=match.height_range,
