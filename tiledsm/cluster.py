@@ -17,7 +17,7 @@ from typing import Iterator
 
 import dask
 
-__all__ = ["ClusterConfig", "compute_context", "single_threaded_libraries"]
+__all__ = ["ClusterConfig", "compute_context", "shared_cluster", "single_threaded_libraries"]
 
 #: environment that keeps native libraries to one thread inside a task
 SINGLE_THREAD_ENV = {
@@ -97,6 +97,21 @@ def compute_context(config: ClusterConfig = ClusterConfig()) -> Iterator[object 
     ) as cluster, Client(cluster) as client:
         client.run(single_threaded_libraries)
         yield client
+
+
+@contextlib.contextmanager
+def shared_cluster(config: ClusterConfig = ClusterConfig()) -> Iterator[ClusterConfig]:
+    """One cluster for a run of several stages: yields a configuration whose
+    ``scheduler`` is the address of a local cluster started once (each
+    stage's :func:`compute_context` then connects to it instead of starting
+    its own); an explicit scheduler or ``"synchronous"`` is yielded as is."""
+    if config.scheduler is not None:
+        yield config
+        return
+    import dataclasses
+
+    with compute_context(config) as client:
+        yield dataclasses.replace(config, scheduler=client.scheduler.address)
 
 
 def compute_with_progress(*collections, config: ClusterConfig = ClusterConfig(), client=None):

@@ -79,15 +79,17 @@ def dsm_metrics(height: xr.DataArray, reference: xr.DataArray, mask: xr.DataArra
     return stats
 
 
-def _reference_on_grid(path: str | Path, like: xr.DataArray) -> xr.DataArray:
-    """A reference raster resampled (bilinear) onto the grid of ``like``."""
+def _reference_on_grid(path: str | Path, like: xr.DataArray, resampling: str = "bilinear") -> xr.DataArray:
+    """A reference raster on the grid of ``like``: as is when it shares it,
+    else resampled (``resampling``: a ``rasterio.enums.Resampling`` name;
+    ``"nearest"`` for masks and labels)."""
     import rioxarray  # noqa: F401  (registers .rio)
     from rasterio.enums import Resampling
 
     ref = xr.open_dataarray(path, engine="rasterio", mask_and_scale=True).squeeze("band", drop=True)
     if ref.rio.crs == like.rio.crs and ref.shape == like.shape and np.allclose(ref.rio.transform(), like.rio.transform()):
         return ref.assign_coords(x=like.x, y=like.y)
-    return ref.rio.reproject_match(like, resampling=Resampling.bilinear)
+    return ref.rio.reproject_match(like, resampling=Resampling[resampling])
 
 
 def write_dsm_products(
@@ -135,8 +137,7 @@ def write_dsm_products(
 def run_dsm(recipe: DSMRecipe, out: Path, cluster: ClusterConfig | None = None, overwrite: bool = False) -> dict:
     """Views (or a synthetic scene) -> DSM products and metrics."""
     from tiledsm.dsm import dsm_from_pair
-    from tiledsm.geometry.grid import GroundGrid
-    from tiledsm.recipes import dsm_params
+    from tiledsm.recipes import dsm_params, grid_from_spec
 
     cluster = cluster or ClusterConfig(scheduler=recipe.cluster.scheduler, workers=recipe.cluster.workers)
     t_start = time.perf_counter()
@@ -155,11 +156,7 @@ def run_dsm(recipe: DSMRecipe, out: Path, cluster: ClusterConfig | None = None, 
     else:
         images, rpcs, reference = inp.images, inp.rpcs, inp.reference
     g = recipe.grid
-    grid = None
-    if g.like:
-        grid = GroundGrid.like(g.like, chunk=g.chunk)
-    elif g.bounds:
-        grid = GroundGrid.from_bounds(g.crs, g.bounds, g.resolution, chunk=g.chunk)
+    grid = grid_from_spec(g)
     params = dsm_params(g, recipe.match)
     ds, report = dsm_from_pair(*images, rpcs=rpcs, grid=grid, params=params)
     if recipe.output.geoid:

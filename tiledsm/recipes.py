@@ -81,6 +81,20 @@ class MatchSpec(_Strict):
     params: dict[str, Any] = Field(default_factory=dict, description="SGVLLParams fields")
 
 
+def grid_from_spec(grid: GridSpec):
+    """The :class:`~tiledsm.geometry.grid.GroundGrid` a recipe's ``grid``
+    section names (``like`` or ``bounds``), or ``None`` when the stage
+    derives it from the views (then ``crs``/``resolution`` go through
+    :func:`dsm_params`)."""
+    from tiledsm.geometry.grid import GroundGrid
+
+    if grid.like:
+        return GroundGrid.like(grid.like, chunk=grid.chunk)
+    if grid.bounds:
+        return GroundGrid.from_bounds(grid.crs, grid.bounds, grid.resolution, chunk=grid.chunk)
+    return None
+
+
 def dsm_params(grid: GridSpec, match: MatchSpec, *, resolution: float | None = None, chunk: int | None = None):
     """:class:`tiledsm.dsm.DSMParams` of a recipe's ``grid`` and ``match``
     sections (``resolution`` and ``chunk`` override the grid's)."""

@@ -311,16 +311,7 @@ def _on_grid(path, like, *, nearest: bool = False) -> np.ndarray:
     """A raster's values on the grid of ``like`` (float64)."""
     from tiledsm.pipelines import _reference_on_grid
 
-    if nearest:
-        import rioxarray  # noqa: F401
-        import xarray as xr
-        from rasterio.enums import Resampling
-
-        ref = xr.open_dataarray(path, engine="rasterio", mask_and_scale=True).squeeze("band", drop=True)
-        if not (ref.shape == like.shape and np.allclose(ref.rio.transform(), like.rio.transform())):
-            ref = ref.rio.reproject_match(like, resampling=Resampling.nearest)
-        return np.asarray(ref.values, np.float64)
-    return np.asarray(_reference_on_grid(path, like).values, np.float64)
+    return np.asarray(_reference_on_grid(path, like, "nearest" if nearest else "bilinear").values, np.float64)
 
 
 def expected_coregistration(stable: np.ndarray, dx: np.ndarray, dy: np.ndarray, dz: np.ndarray, res: float) -> dict:
@@ -429,19 +420,20 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
     NoStableTerrainError
         The exclusion polygons leave no stable terrain for the fit.
     """
-    from tiledsm.cluster import ClusterConfig, compute_context
+    from tiledsm.cluster import ClusterConfig, compute_context, shared_cluster
     from tiledsm.compare import CompareParams, compare_dsms
     from tiledsm.dsm import dsm_from_pair
     from tiledsm.geometry.grid import GroundGrid
     from tiledsm.io import open_product
     from tiledsm.pipelines import _write_json, write_dsm_products
+    from tiledsm.recipes import grid_from_spec
 
     cluster = cluster or ClusterConfig(scheduler=recipe.cluster.scheduler, workers=recipe.cluster.workers)
     t_start = time.perf_counter()
     timings: dict = {}
     inp, g = recipe.input, recipe.grid
     scene = None
-    grid = None
+    grid = grid_from_spec(g)
     if inp.synth is not None:
         from tiledsm.synth import make_scene
 
@@ -457,10 +449,6 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
     else:
         pre_in = (inp.pre.images, inp.pre.rpcs)
         post_in = (inp.post.images, inp.post.rpcs)
-    if g.like:
-        grid = GroundGrid.like(g.like, chunk=g.chunk)
-    elif g.bounds:
-        grid = GroundGrid.from_bounds(g.crs, g.bounds, g.resolution, chunk=g.chunk)
     params = _dsm_params(recipe)
 
     # ---- both DSMs lazily, the post one on the pre grid; refuse a post pair off the grid before computing
@@ -484,17 +472,18 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
         chunks=recipe.compare.chunk, cog=recipe.output.cog, figures=recipe.output.quicklook,
     )
 
-    # ---- compute
-    for name, ds in (("pre", ds_pre), ("post", ds_post)):
-        log.info("%s-event DSM into %s", name, out / name)
+    # ---- compute, on one cluster for the three stages
+    with shared_cluster(cluster) as run_cluster:
+        for name, ds in (("pre", ds_pre), ("post", ds_post)):
+            log.info("%s-event DSM into %s", name, out / name)
+            t0 = time.perf_counter()
+            write_dsm_products(ds, out / name, cluster=run_cluster, cog=recipe.output.cog,
+                               quicklook=recipe.output.quicklook, overwrite=overwrite)
+            timings[f"dsm_{name}_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        write_dsm_products(ds, out / name, cluster=cluster, cog=recipe.output.cog,
-                           quicklook=recipe.output.quicklook, overwrite=overwrite)
-        timings[f"dsm_{name}_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    with compute_context(cluster):
-        res = compare_dsms(out / "pre" / "dsm.zarr", out / "post" / "dsm.zarr", out / "compare", cparams)
-    timings["compare_s"] = time.perf_counter() - t0
+        with compute_context(run_cluster):
+            res = compare_dsms(out / "pre" / "dsm.zarr", out / "post" / "dsm.zarr", out / "compare", cparams)
+        timings["compare_s"] = time.perf_counter() - t0
 
     # ---- metrics
     cm = res.metrics

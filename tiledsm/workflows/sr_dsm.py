@@ -48,20 +48,18 @@ Conventions
 
 from __future__ import annotations
 
-import contextlib
-import dataclasses
 import logging
 import math
 import time
 from pathlib import Path
-from typing import Iterator, Literal, Optional
+from typing import Literal, Optional
 
 import numpy as np
 import xarray as xr
 from scipy import sparse
 from pydantic import Field, field_validator, model_validator
 
-from tiledsm.cluster import ClusterConfig, compute_context
+from tiledsm.cluster import ClusterConfig, compute_context, shared_cluster
 from tiledsm.errors import TiledsmError
 from tiledsm.geometry.grid import GroundGrid
 from tiledsm.recipes import (
@@ -314,17 +312,6 @@ def markdown_report(metrics: dict) -> str:
 
 
 # ----------------------------------------------------------------- stages
-@contextlib.contextmanager
-def _shared_cluster(config: ClusterConfig) -> Iterator[ClusterConfig]:
-    """One local cluster for the whole run (each stage then connects to its
-    address); an explicit scheduler or ``synchronous`` is used as is."""
-    if config.scheduler is not None:
-        yield config
-        return
-    with compute_context(config) as client:
-        yield dataclasses.replace(config, scheduler=client.scheduler.address)
-
-
 def _dsm_params(recipe: SRDSMRecipe, grid: GroundGrid | None):
     from tiledsm.recipes import dsm_params
 
@@ -406,16 +393,13 @@ def _hr_pair(recipe: SRDSMRecipe, out: Path) -> tuple[list[Path], dict]:
 
 
 def _target_grid(recipe: SRDSMRecipe, info: dict) -> GroundGrid | None:
+    from tiledsm.recipes import grid_from_spec
+
     g = recipe.grid
-    if g.like:
-        return GroundGrid.like(g.like, chunk=g.chunk)
-    if "reference" in info:
-        return GroundGrid.like(str(info["reference"]), chunk=g.chunk)
-    if "truth" in info:
-        return GroundGrid.like(str(info["truth"]), chunk=g.chunk)
-    if g.bounds:
-        return GroundGrid.from_bounds(g.crs, g.bounds, g.resolution, chunk=g.chunk)
-    return None
+    known = info.get("reference") or info.get("truth")
+    if known is not None and not g.like:
+        return GroundGrid.like(str(known), chunk=g.chunk)
+    return grid_from_spec(g)
 
 
 # ----------------------------------------------------------------- runner
@@ -443,7 +427,7 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
         "pipeline": "sr_dsm", "name": recipe.name, "input": info["description"],
         "sr": {**sr.model_dump(), "border": border},
     }
-    with _shared_cluster(cluster) as run_cluster:
+    with shared_cluster(cluster) as run_cluster:
         # 1. reference DSM from the HR pair, on G
         grid = _target_grid(recipe, info)
         log.info("sr_dsm: DSM of the HR pair")
