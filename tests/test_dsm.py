@@ -280,3 +280,13 @@ def test_default_grid_in_a_given_crs(scene):
     truth = GroundGrid.like(scene.truth_dsm)
     x, y = Transformer.from_crs(truth.crs, "EPSG:2154", always_xy=True).transform(truth.x.mean(), truth.y.mean())
     assert ds.x.min() < x < ds.x.max() and ds.y.min() < y < ds.y.max()
+
+
+def test_height_range_without_any_match_gives_nan(scene, tmp_path):
+    """A search range far above the ground: every cell is rejected (NaN), no crash."""
+    grid = GroundGrid.like(scene.truth_dsm, chunk=64).subgrid(448, 576, 448, 576)
+    lo = scene.height_range[1] + 2000.0
+    ds, _ = dsm_from_pair(*scene.views, grid=grid, params=DSMParams(chunk=64, height_range=(lo, lo + 100.0)))
+    out = _compute(ds, tmp_path / "off")
+    assert np.isnan(out["height"].values).all()
+    assert (tmp_path / "off" / "dsm.zarr").exists()
