@@ -17,6 +17,7 @@ unless a geoid grid is given for the output; NaN means "no height".
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import math
 import time
@@ -32,6 +33,7 @@ import xarray as xr
 from tiledsm.errors import MatchingError, NoOverlapError, TiledsmError
 from tiledsm.geometry import RPC
 from tiledsm.geometry.grid import GroundGrid
+from tiledsm.match.pyramid import SearchParams
 from tiledsm.match.sgvll import SGVLLParams
 
 log = logging.getLogger(__name__)
@@ -84,6 +86,8 @@ class DSMParams:
         estimated from tie points.
     match : SGVLLParams
         Matching parameters (window, penalties, thresholds).
+    search : SearchParams
+        How a coarser level's DSM becomes a finer level's search band.
     """
 
     resolution: float | None = None
@@ -96,6 +100,7 @@ class DSMParams:
     refine_steps: int = 4
     relative_correction: bool = True
     match: SGVLLParams = field(default_factory=SGVLLParams)
+    search: SearchParams = field(default_factory=SearchParams)
 
     def __post_init__(self) -> None:
         if self.chunk < 32 or self.chunk % 2:
@@ -105,10 +110,11 @@ class DSMParams:
             raise ValueError(f"DSMParams.levels must be >= 1, got {self.levels}")
 
     def halo(self) -> int:
-        """Halo in cells (even): enough aggregation context for the
-        semi-global paths to carry information across the chunk border,
-        plus the correlation window."""
-        h = max(32, 2 * self.match.window)
+        """Halo in cells (even) of a matching task: the semi-global paths'
+        restart period (:attr:`~tiledsm.match.sgvll.SGVLLParams.path_period`,
+        which makes the aggregation exact in every chunking), and at least
+        twice the correlation window."""
+        h = max(2 * self.match.window, self.match.path_period)
         return h + h % 2
 
 
@@ -259,95 +265,275 @@ def _mean_gsd(views: Sequence[View], h: float) -> float:
 
 
 # --------------------------------------------------------------------- blocks
-def _level_grid(grid: GroundGrid, level: int) -> GroundGrid:
+def level_grid(grid: GroundGrid, level: int) -> GroundGrid:
     """The grid of pyramid level ``level``: cells ``2**level`` times larger,
-    same top-left corner, so coarse cell ``I`` covers fine cells ``2I, 2I+1``
-    of the next finer level."""
+    same top-left corner (coarse cell ``I`` covers cells ``2I, 2I+1`` of the
+    next finer level), same chunk side in cells."""
+    from tiledsm.match.pyramid import level_shape
+
     f = 2**level
-    return GroundGrid(
-        crs=grid.crs,
-        x0=grid.x0,
-        y0=grid.y0,
-        resolution=grid.resolution * f,
-        width=max(1, math.ceil(grid.width / f)),
-        height=max(1, math.ceil(grid.height / f)),
-        chunk=grid.chunk,
-    )
+    h, w = level_shape(grid.shape, level)
+    return GroundGrid(crs=grid.crs, x0=grid.x0, y0=grid.y0, resolution=grid.resolution * f, width=w, height=h, chunk=grid.chunk)
 
 
-def _level_step(views: Sequence[View], grid: GroundGrid, level: int, h_range, params: DSMParams) -> float:
-    """Height step (metres) of a level: about ``step_px`` pixels of parallax
-    in the level's images, measured at the grid centre. One step per level
-    for the whole grid, so every chunk sweeps the same candidate lattice."""
-    from tiledsm.match.sgvll import height_step
+@dataclass(frozen=True)
+class LevelGeometry:
+    """What every task of one pyramid level shares: its grid, image
+    decimation, height step and view-pair weights, all measured once at the
+    grid centre so that every chunk sweeps the same candidate lattice and
+    scores candidates the same way.
 
-    lon, lat = _grid_centre_lonlat(grid)
+    Attributes
+    ----------
+    level : int
+        0 = full resolution.
+    grid : GroundGrid
+        The level's grid (:func:`level_grid`).
+    step : float
+        Height step, metres (about ``step_px`` pixels of parallax).
+    pair_weights : numpy.ndarray
+        ``(nv, nv)`` squared parallax per metre of each view pair.
+    """
+
+    level: int
+    grid: GroundGrid
+    step: float
+    pair_weights: np.ndarray
+
+    @property
+    def factor(self) -> int:
+        return 2**self.level
+
+
+def level_geometry(views: Sequence[View], grid: GroundGrid, level: int, h_range, params: DSMParams) -> LevelGeometry:
+    """The :class:`LevelGeometry` of pyramid level ``level`` of ``grid``."""
+    from tiledsm.match.sgvll import height_step, pair_weights
+
+    lgrid = level_grid(grid, level)
+    lon, lat = _grid_centre_lonlat(lgrid)
     f = 2**level
     rpcs = [v.rpc.scaled(1.0 / f) if f > 1 else v.rpc for v in views]
-    return float(height_step(rpcs, lon, lat, float(np.mean(h_range)), params.match))
+    h = float(np.mean(h_range))
+    step = float(height_step(rpcs, lon, lat, h, params.match))
+    return LevelGeometry(level, lgrid, step, pair_weights(rpcs, lon, lat, h))
 
 
-def _match_chunk(
+def _level_image(view: View, sub: GroundGrid, h_band: tuple[float, float], f: int):
+    """Pixels of ``view`` that see the ground cells ``sub`` over ``h_band``,
+    at decimation ``f``: ``(image, (row0, col0))`` with the window's origin
+    in pixels of the decimated image, or ``None`` when the view does not
+    see the cells (or sees only nodata).
+
+    The window's origin is a multiple of ``f`` in the full image, so its
+    decimated pixels are exactly those of the whole decimated image
+    (whichever chunk asks for them).
+    """
+    from tiledsm.geometry.footprint import image_window
+    from tiledsm.match.pyramid import downsample
+
+    win = image_window(view.rpc, sub, h_band, view.shape, margin=4 * f + 8)
+    if win is None:
+        return None
+    r0, r1, c0, c1 = win
+    r0, c0 = (r0 // f) * f, (c0 // f) * f
+    r1 = min(view.shape[0], -(-r1 // f) * f)
+    c1 = min(view.shape[1], -(-c1 // f) * f)
+    if (r1 - r0) < 2 * f or (c1 - c0) < 2 * f:
+        return None
+    img = read_window(view, (r0, r1, c0, c1))
+    if not np.isfinite(img).any():
+        return None
+    return downsample(img, f), (r0 // f, c0 // f)
+
+
+def match_cells(
     views: Sequence[View],
-    grid: GroundGrid,
-    window: tuple[int, int, int, int],
-    level: int,
-    halo: int,
+    geom: LevelGeometry,
+    cells: tuple[int, int, int, int],
+    search: np.ndarray | None,
     h_range: tuple[float, float],
-    step: float,
     params: DSMParams,
-    coarse: np.ndarray | None,
 ) -> np.ndarray:
-    """One task: heights and confidence of grid cells ``window`` (row0, row1,
-    col0, col1) of the level grid ``grid``.
+    """Heights and confidence of the level cells ``cells = (row0, row1,
+    col0, col1)`` (a chunk plus its halo), matched together.
 
-    ``coarse`` holds the coarser level's heights over the cells covering
-    this chunk plus halo (coarse cell ``I`` = fine cells ``2I, 2I+1``
-    counted from the halo's first row/col, which is even), or ``None`` at
-    the coarsest level.
+    ``search`` is ``(3, rows, cols)`` ``h_ref, lo, hi`` from the coarser
+    level (:func:`tiledsm.match.pyramid.search_from_coarse`), or ``None``
+    at the coarsest level (the whole ``h_range``, a horizontal sweep).
 
     Returns
     -------
     numpy.ndarray
-        ``(2, rows, cols)`` float32: height (m, ellipsoidal; NaN = none) and
-        confidence (winning ZNCC, 0..1).
+        ``(2, rows, cols)`` float32: height (ellipsoidal metres, NaN =
+        none) and confidence (winning ZNCC, 0..1).
     """
     from tiledsm.cluster import single_threaded_libraries
-    from tiledsm.geometry.footprint import image_window
-    from tiledsm.match.sgvll import downsample, match_block, refine_search
+    from tiledsm.match.sgvll import match_block
 
     single_threaded_libraries()
-    r0, r1, c0, c1 = window
+    r0, r1, c0, c1 = cells
+    sub = geom.grid.subgrid(r0, r1, c0, c1)
     out = np.full((2, r1 - r0, c1 - c0), np.nan, np.float32)
-    hr0, hr1 = max(0, r0 - halo), min(grid.height, r1 + halo)
-    hc0, hc1 = max(0, c0 - halo), min(grid.width, c1 + halo)
-    sub = grid.subgrid(hr0, hr1, hc0, hc1)
-    shape = (sub.height, sub.width)
-    if coarse is None:
-        lo = np.full(shape, h_range[0], np.float32)
-        hi = np.full(shape, h_range[1], np.float32)
-        h_ref = None
+    if search is None:
+        lo, hi, h_ref = float(h_range[0]), float(h_range[1]), None
+        band = (lo, hi)
     else:
-        lo, hi, h_ref = refine_search(coarse, 2, shape, params.refine_steps * step, h_range[0], h_range[1])
-    f = 2**level
-    images, rpcs = [], []
+        h_ref, lo, hi = search
+        if not np.isfinite(lo).any():
+            return out
+        band = (float(np.nanmin(lo)), float(np.nanmax(hi)))
+        # cells the coarser level gives nothing to search still get a
+        # deterministic surface: their samples enter neighbours' windows
+        h_ref = np.where(np.isfinite(h_ref), h_ref, np.float32(np.mean(h_range)))
+    f = geom.factor
+    images, rpcs, windows = [], [], []
     for v in views:
-        win = image_window(v.rpc, sub, (float(np.min(lo)), float(np.max(hi))), v.shape, margin=4 * f + 8)
-        if win is None:
-            return out  # the ground chunk is not seen by this view
-        img = read_window(v, win)
-        if not np.isfinite(img).any():
-            return out  # nothing but nodata
-        rpc = v.rpc.cropped(win[0], win[2])
-        if f > 1:
-            img = downsample(img, f)
-            rpc = rpc.scaled(1.0 / f)
-        images.append(img)
-        rpcs.append(rpc)
-    height, conf = match_block(images, rpcs, None, sub.x, sub.y, sub.crs, lo, hi, params.match, step=step, h_ref=h_ref)
-    out[0] = height[r0 - hr0 : r1 - hr0, c0 - hc0 : c1 - hc0]
-    out[1] = conf[r0 - hr0 : r1 - hr0, c0 - hc0 : c1 - hc0]
+        got = _level_image(v, sub, band, f)
+        if got is None:
+            return out  # a view does not see these cells
+        images.append(got[0])
+        windows.append(got[1])
+        rpcs.append(v.rpc.scaled(1.0 / f) if f > 1 else v.rpc)
+    g = geom.grid
+    # speckles are removed afterwards over the whole level (despeckle), with
+    # their own halo: the component sizes are then exact in any chunking
+    kernel = dataclasses.replace(params.match, speckle_size=0)
+    height, conf = match_block(
+        images, rpcs, windows, sub.x, sub.y, sub.crs, lo, hi, kernel, step=geom.step, h_ref=h_ref,
+        origin=(r0, c0), axes=(float(g.x[0]), float(g.y[0]), g.resolution, -g.resolution),
+        pair_weights=geom.pair_weights,
+    )
+    out[0], out[1] = height, conf
     return out
+
+
+def level_chunks(n: int, chunk: int, min_size: int) -> tuple[int, ...]:
+    """Chunk sizes of one axis of ``n`` cells: ``chunk`` each, the last one
+    merged into its neighbour when it would be smaller than ``min_size``
+    (a halo must fit in every chunk)."""
+    sizes = [chunk] * (n // chunk) + ([n % chunk] if n % chunk else [])
+    if len(sizes) > 1 and sizes[-1] < min_size:
+        sizes[-2] += sizes.pop()
+    return tuple(sizes)
+
+
+def _min_chunk(params: DSMParams) -> int:
+    from tiledsm.match.pyramid import search_halo
+
+    return max(params.halo(), 2 * search_halo(params.search))
+
+
+def _windows(chunks: tuple[int, ...], index: int, halo: int) -> tuple[int, int, int, int]:
+    """``(start, stop, halo_start, halo_stop)`` of chunk ``index`` of an
+    axis chunked as ``chunks``, the halo clipped to the axis."""
+    start = sum(chunks[:index])
+    stop = start + chunks[index]
+    return start, stop, max(0, start - halo), min(sum(chunks), stop + halo)
+
+
+def _match_task(search, views, geom, chunks, halo, h_range, params, block_id=None) -> np.ndarray:
+    """One chunk of a level: match it plus its halo, return the chunk."""
+    r0, r1, hr0, hr1 = _windows(chunks[0], block_id[-2], halo)
+    c0, c1, hc0, hc1 = _windows(chunks[1], block_id[-1], halo)
+    if search is not None and search.ndim == 3 and search.shape[0] == 3:
+        if search.shape[1:] != (hr1 - hr0, hc1 - hc0):
+            raise MatchingError(f"internal: search block {search.shape} for cells {(hr0, hr1, hc0, hc1)}")
+    else:
+        search = None  # the coarsest level: a placeholder block
+    res = match_cells(views, geom, (hr0, hr1, hc0, hc1), search, h_range, params)
+    return res[:, r0 - hr0 : r1 - hr0, c0 - hc0 : c1 - hc0]
+
+
+def _search_block(coarse, depth, margin, h_range, search_params) -> np.ndarray:
+    from tiledsm.match.pyramid import search_from_coarse
+
+    return search_from_coarse(coarse, depth, margin, h_range, search_params)
+
+
+def _overlap(x: da.Array, depth: dict[int, int]) -> da.Array:
+    """Blocks of ``x`` grown by ``depth`` cells into their neighbours
+    (nothing added at the array's edges); axes of one chunk need none."""
+    depth = {ax: (d if len(x.chunks[ax]) > 1 else 0) for ax, d in depth.items()}
+    return da.overlap.overlap(x, depth=depth, boundary="none", allow_rechunk=False)
+
+
+def search_array(coarse: da.Array, fine: LevelGeometry, chunks, h_range, params: DSMParams) -> da.Array:
+    """Lazy ``(3, H, W)`` search band (``h_ref, lo, hi``) of the level
+    ``fine``, chunked as ``chunks``, from the coarser level's heights.
+
+    The coarser heights are rechunked to half the finer chunks, so each of
+    their blocks, grown by :func:`~tiledsm.match.pyramid.search_halo` cells
+    (NaN beyond the grid), maps onto exactly one finer chunk: one
+    ``map_blocks`` over ``dask.array.overlap``, exact in any chunking.
+    """
+    from tiledsm.match.pyramid import search_halo
+
+    g = fine.grid
+    depth = search_halo(params.search)
+    half = tuple(
+        tuple(n // 2 for n in ch[:-1]) + (nc - sum(n // 2 for n in ch[:-1]),)
+        for ch, nc in zip(chunks, coarse.shape)
+    )
+    c = coarse.rechunk(half)
+    padded = da.pad(c, depth, mode="constant", constant_values=np.nan)
+    # da.pad adds the padding to the first and last chunks: same block layout
+    padded = padded.rechunk(
+        tuple(
+            (ch[0] + depth,) + ch[1:-1] + (ch[-1] + depth,) if len(ch) > 1 else (ch[0] + 2 * depth,)
+            for ch in c.chunks
+        )
+    )
+    grown = _overlap(padded, {0: depth, 1: depth})
+    out_chunks = ((3,), tuple(2 * n for n in c.chunks[0]), tuple(2 * n for n in c.chunks[1]))
+    up = da.map_blocks(
+        _search_block, grown, depth, params.refine_steps * fine.step, tuple(h_range), params.search,
+        chunks=out_chunks, new_axis=0, dtype=np.float32, name=f"search-L{fine.level}",
+    )
+    return up[:, : g.height, : g.width].rechunk(((3,), *chunks))
+
+
+def _despeckle_block(height: np.ndarray, max_diff: float, min_size: int) -> np.ndarray:
+    from tiledsm.match.sgm import remove_speckles
+
+    return remove_speckles(height, max_diff, min_size)
+
+
+def despeckle(height: da.Array, geom: LevelGeometry, params: DSMParams) -> da.Array:
+    """``height`` without its connected components of fewer than
+    ``params.match.speckle_size`` cells (4-neighbours within
+    ``speckle_steps`` height steps are connected): isolated blunders.
+
+    One ``map_overlap`` with a halo of ``speckle_size`` cells: a component
+    smaller than that lies entirely in a chunk's halo, and one that reaches
+    the halo's edge has at least that many cells, so the result is exact in
+    any chunking."""
+    size = int(params.match.speckle_size)
+    if size <= 1:
+        return height
+    chunks = height.chunks
+    out = da.map_overlap(
+        _despeckle_block, height, depth=size, boundary="none", trim=True, dtype=np.float32,
+        max_diff=float(params.match.speckle_steps * geom.step), min_size=size,
+    )
+    return out.rechunk(chunks)
+
+
+def level_array(views, geom: LevelGeometry, chunks, h_range, params: DSMParams, search: da.Array | None) -> da.Array:
+    """Lazy ``(2, H, W)`` heights and confidence of one pyramid level,
+    chunked as ``chunks``: one task per chunk, each matching its chunk plus
+    ``params.halo()`` cells and returning the chunk."""
+    halo = params.halo()
+    out_chunks = ((2,), *chunks)
+    name = f"match-L{geom.level}"
+    if search is None:
+        search = da.zeros((1, *geom.grid.shape), chunks=((1,), *chunks), dtype=np.uint8)
+    else:
+        search = _overlap(search, {1: halo, 2: halo})
+    matched = da.map_blocks(
+        _match_task, search, views, geom, chunks, halo, tuple(h_range), params,
+        chunks=out_chunks, dtype=np.float32, name=name,
+    )
+    return da.stack([despeckle(matched[0], geom, params), matched[1]])
 
 
 def _grid_centre_lonlat(grid: GroundGrid) -> tuple[float, float]:
@@ -358,97 +544,10 @@ def _grid_centre_lonlat(grid: GroundGrid) -> tuple[float, float]:
     return float(lon), float(lat)
 
 
-@dataclass(frozen=True)
-class _Level:
-    """The tasks of one pyramid level: ``blocks[i][j]`` is the delayed
-    ``(2, rows, cols)`` result of chunk ``(i, j)``, whose cells are
-    ``windows[i][j] = (row0, row1, col0, col1)`` of the level grid."""
-
-    blocks: list
-    windows: list
-
-    def parts(self, rows: tuple[int, int], cols: tuple[int, int]) -> list:
-        """``(block, (row0, col0))`` of every chunk overlapping the cells
-        ``rows x cols`` (half-open)."""
-        out = []
-        for line_b, line_w in zip(self.blocks, self.windows):
-            for b, (r0, r1, c0, c1) in zip(line_b, line_w):
-                if r0 < rows[1] and r1 > rows[0] and c0 < cols[1] and c1 > cols[0]:
-                    out.append((b, (r0, c0)))
-        return out
-
-
-def _assemble(parts: list, rows: tuple[int, int], cols: tuple[int, int]) -> np.ndarray:
-    """Heights (band 0) of the cells ``rows x cols`` from computed chunks
-    ``(array, (row0, col0))``; NaN where no chunk covers a cell."""
-    out = np.full((rows[1] - rows[0], cols[1] - cols[0]), np.nan, np.float32)
-    for arr, (r0, c0) in parts:
-        h = arr[0]
-        a0, a1 = max(rows[0], r0), min(rows[1], r0 + h.shape[0])
-        b0, b1 = max(cols[0], c0), min(cols[1], c0 + h.shape[1])
-        if a1 > a0 and b1 > b0:
-            out[a0 - rows[0] : a1 - rows[0], b0 - cols[0] : b1 - cols[0]] = h[a0 - r0 : a1 - r0, b0 - c0 : b1 - c0]
-    return out
-
-
-def _match_chunk_from_parts(views, grid, window, level, halo, h_range, step, params, parts, rows, cols):
-    """:func:`_match_chunk` with the coarser heights given as computed chunks."""
-    coarse = None if parts is None else _assemble(parts, rows, cols)
-    return _match_chunk(views, grid, window, level, halo, h_range, step, params, coarse)
-
-
-def _level_tasks(
-    views: Sequence[View],
-    grid: GroundGrid,
-    level: int,
-    h_range: tuple[float, float],
-    params: DSMParams,
-    coarse: _Level | None,
-) -> _Level:
-    """The tasks of one pyramid level, one per chunk of ``grid``.
-
-    A chunk of a finer level depends only on the coarser-level chunks under
-    its footprint + halo, passed as the coarser tasks themselves (not as a
-    slice of a dask array: ``dask.delayed`` would optimise such a slice into
-    each dependant and recompute the coarser chunk once per finer chunk).
-    """
-    halo = params.halo()
-    step = _level_step(views, grid, level, h_range, params)
-    task = dask.delayed(_match_chunk_from_parts, pure=True)
-    nby, nbx = grid.numblocks
-    blocks, windows = [], []
-    for i in range(nby):
-        line_b, line_w = [], []
-        for j in range(nbx):
-            r0, r1, c0, c1 = grid.block_window(i, j)
-            parts = rows = cols = None
-            if coarse is not None:
-                hr0, hr1 = max(0, r0 - halo), min(grid.height, r1 + halo)
-                hc0, hc1 = max(0, c0 - halo), min(grid.width, c1 + halo)
-                rows, cols = (hr0 // 2, -(-hr1 // 2)), (hc0 // 2, -(-hc1 // 2))
-                parts = coarse.parts(rows, cols)
-            d = task(views, grid, (r0, r1, c0, c1), level, halo, h_range, step, params, parts, rows, cols)
-            line_b.append(d)
-            line_w.append((r0, r1, c0, c1))
-        blocks.append(line_b)
-        windows.append(line_w)
-    return _Level(blocks, windows)
-
-
-def _level_array(level: _Level) -> da.Array:
-    """Lazy ``(2, height, width)`` array of a level's tasks."""
-    return da.block(
-        [
-            [da.from_delayed(b, shape=(2, r1 - r0, c1 - c0), dtype=np.float32) for b, (r0, r1, c0, c1) in zip(lb, lw)]
-            for lb, lw in zip(level.blocks, level.windows)
-        ]
-    )
-
-
 def auto_levels(views: Sequence[View], grid: GroundGrid, h_range: tuple[float, float], params: DSMParams) -> int:
     """Pyramid levels so the coarsest sweep needs at most
     ``params.max_candidates`` heights (at most 5 levels)."""
-    n = (h_range[1] - h_range[0]) / _level_step(views, grid, 0, h_range, params)
+    n = (h_range[1] - h_range[0]) / level_geometry(views, grid, 0, h_range, params).step
     levels = 1
     while n > params.max_candidates and levels < 5:
         n /= 2
@@ -464,19 +563,30 @@ def dsm_from_views(
 ) -> xr.Dataset:
     """Lazy DSM of ``views`` on ``grid`` (coarse to fine).
 
+    Each pyramid level is a dask array on its own grid; a finer level is one
+    ``map_blocks`` over its grid's chunks (plus halo) with the search band
+    derived from the coarser level as an aligned dask array
+    (:func:`search_array`). Every halo is derived from the parameters, so
+    the result does not depend on the chunking.
+
     Returns
     -------
     xarray.Dataset
         ``height`` (float32 metres, WGS84 ellipsoidal, NaN = no height) and
         ``confidence`` (0..1), dims ``(y, x)``, dask-backed, CRS written.
     """
+    import rioxarray  # noqa: F401  (registers .rio)
+
     if h_range[1] <= h_range[0]:
         raise MatchingError(f"empty height range {h_range}")
-    tasks = None
     levels = params.levels or auto_levels(views, grid, h_range, params)
+    arr = None
     for level in range(levels - 1, -1, -1):
-        tasks = _level_tasks(views, _level_grid(grid, level), level, h_range, params, tasks)
-    arr = _level_array(tasks)
+        geom = level_geometry(views, grid, level, h_range, params)
+        chunks = tuple(level_chunks(n, grid.chunk, _min_chunk(params)) for n in geom.grid.shape)
+        search = None if arr is None else search_array(arr[0], geom, chunks, h_range, params)
+        arr = level_array(views, geom, chunks, h_range, params, search)
+    arr = arr.rechunk(((2,), *grid.chunks))
     # the finest level is on `grid` itself; its chunks are the grid's
     ds = xr.Dataset(
         {
@@ -489,9 +599,30 @@ def dsm_from_views(
     ds["confidence"].attrs.update(units="1", long_name="matching confidence")
     ds = ds.rio.write_crs(grid.crs).rio.write_transform(grid.transform)
     ds.attrs.update(
-        views=[v.path for v in views], height_range_m=list(h_range), levels=levels, params=_params_dict(params)
+        views=[v.path for v in views], height_range_m=list(h_range), levels=levels, params=_params_dict(params),
+        fingerprint=json.dumps(dsm_fingerprint(views, grid, h_range, levels, params), sort_keys=True),
     )
     return ds
+
+
+def dsm_fingerprint(views: Sequence[View], grid: GroundGrid, h_range, levels: int, params: DSMParams) -> dict:
+    """Everything that determines the DSM, as plain JSON
+    (:func:`tiledsm.provenance.fingerprint`): each input's identity (path,
+    size, sampled content hash), the RPCs actually used (after relative
+    correction), the grid, height range, levels, every parameter, and the
+    package version and code. A stored DSM is resumed only under the same
+    fingerprint."""
+    from tiledsm.provenance import fingerprint, input_identity
+
+    return fingerprint(
+        inputs=[input_identity(v.path) for v in views],
+        rpcs=[v.rpc for v in views],
+        grid={"crs": str(grid.crs), "x0": grid.x0, "y0": grid.y0, "resolution": grid.resolution,
+              "width": grid.width, "height": grid.height, "chunk": grid.chunk},
+        height_range=list(h_range),
+        levels=levels,
+        params=dataclasses.asdict(params),
+    )
 
 
 def _params_dict(params: DSMParams) -> str:
@@ -576,6 +707,12 @@ def heights_above_geoid(ds: xr.Dataset, geoid: str | Path) -> xr.Dataset:
     )
     out = ds.copy()
     out["height"] = h.copy(data=data)
+    if "fingerprint" in ds.attrs:
+        from tiledsm.provenance import input_identity
+
+        fp = json.loads(ds.attrs["fingerprint"])
+        fp["geoid"] = input_identity(geoid)
+        out.attrs["fingerprint"] = json.dumps(fp, sort_keys=True)
     out["height"].attrs.update(long_name=f"height above the geoid ({Path(geoid).name})", vertical_datum=Path(geoid).name)
     out.attrs["vertical_datum"] = f"geoid {Path(geoid).name}"
     return out

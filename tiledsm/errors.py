@@ -13,6 +13,8 @@ __all__ = [
     "NoOverlapError",
     "RecipeError",
     "MatchingError",
+    "FingerprintMismatchError",
+    "OutputLockedError",
 ]
 
 
@@ -49,3 +51,14 @@ class RecipeError(TiledsmError):
 class MatchingError(TiledsmError):
     """Raised when dense matching cannot proceed (no valid height range,
     no tie points)."""
+
+
+class FingerprintMismatchError(TiledsmError):
+    """Raised when an output folder holds a (finished or partial) result
+    computed from other inputs or parameters than the current run's; the
+    message lists what changed and says how to recompute."""
+
+
+class OutputLockedError(TiledsmError):
+    """Raised when another tiledsm run holds the lock of an output folder;
+    the message names the folder, the holder (pid, host) and its start time."""

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import math
 import os
 import shutil
@@ -56,6 +57,8 @@ import xarray as xr
 
 from tiledsm.errors import GridError, InputFileError, RPCError, TiledsmError, UnsupportedFormatError
 from tiledsm.geometry.rpc import RPC
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "open_scene",
@@ -777,13 +780,33 @@ def create_store(
         except Exception:  # any unreadable store is simply not reusable
             return False
 
+    fingerprint = (attrs or {}).get("fingerprint")
+
+    def same_run(p: Path) -> None:
+        # a store that carries a fingerprint is resumed only by the same run
+        if fingerprint is None:
+            return
+        from tiledsm.provenance import check_resume
+
+        try:
+            with xr.open_zarr(p, consolidated=False, zarr_format=3) as ds:
+                stored = ds.attrs.get("fingerprint")
+        except Exception as exc:  # unreadable: cannot be the same run
+            raise TiledsmError(f"{final}: an unreadable store is in the way ({exc}); rerun with --overwrite") from exc
+        stored = json.loads(stored) if isinstance(stored, str) else stored
+        check_resume(stored if stored is not None else {}, json.loads(fingerprint), str(final))
+
     if overwrite:
         _remove(partial)
+        _remove(final)
     elif final.exists():
+        same_run(final)
         if compatible(final):
             return store
-        raise TiledsmError(f"{final}: exists with another layout; pass overwrite=True to replace it")
+        raise TiledsmError(f"{final}: exists with another layout; rerun with --overwrite to replace it")
     if partial.exists():
+        if fingerprint is not None:
+            same_run(partial)
         if compatible(partial):
             return store
         _remove(partial)
@@ -886,6 +909,7 @@ def write_resumable(
     *,
     compute: Callable | None = None,
     overwrite: bool = False,
+    report: dict | None = None,
 ) -> Path:
     """Resumable counterpart of :func:`write_zarr`.
 
@@ -907,6 +931,16 @@ def write_resumable(
         See :func:`write_blocks`.
     overwrite : bool
         Discard existing (finished or partial) stores.
+    report : dict, optional
+        Filled with ``chunks_total``, ``chunks_reused``, ``chunks_computed``.
+
+    Notes
+    -----
+    When ``obj.attrs`` holds a ``fingerprint`` (JSON of everything that
+    determines the result, :mod:`tiledsm.provenance`), it is stored with the
+    store at creation, and an existing finished or partial store is resumed
+    only if its fingerprint is the same: otherwise
+    :class:`~tiledsm.errors.FingerprintMismatchError` names what changed.
     """
     ds = _as_dataset(obj)
     variables = list(ds.data_vars)
@@ -930,5 +964,9 @@ def write_resumable(
         overwrite=overwrite,
     )
     chunks = dict(zip(first.dims[-2:], first.chunks[-2:]))
-    write_blocks({n: ds[n].chunk(chunks) for n in variables}, store, compute=compute)
+    total = int(np.prod(store.numblocks))
+    written = write_blocks({n: ds[n].chunk(chunks) for n in variables}, store, compute=compute)
+    if report is not None:
+        report.update(chunks_total=total, chunks_reused=total - written, chunks_computed=written)
+    log.info("%s: %d of %d chunks computed, %d reused from an earlier run", path, written, total, total - written)
     return Path(path)

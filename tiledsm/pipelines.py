@@ -45,21 +45,31 @@ def _setup_log(out: Path) -> logging.Handler:
     return handler
 
 
-def run_recipe(recipe, out_dir: str | Path, cluster: ClusterConfig | None = None) -> dict:
-    """Run a validated recipe into ``out_dir``; returns its metrics."""
-    out = Path(out_dir)
-    handler = _setup_log(out)
-    try:
-        resolved = out / "recipe.resolved.yaml"
-        previous = resolved.read_text() if resolved.exists() else None
-        dump_resolved(recipe, resolved)
-        # Finished chunks of an earlier run are kept only if it ran the same recipe.
-        overwrite = previous is not None and previous != resolved.read_text()
-        log.info("running pipeline %s into %s (resume: %s)", recipe.pipeline, out, not overwrite)
-        return RUNNERS[recipe.pipeline](recipe, out, cluster, overwrite=overwrite)
-    finally:
-        logging.getLogger("tiledsm").removeHandler(handler)
-        handler.close()
+def run_recipe(recipe, out_dir: str | Path, cluster: ClusterConfig | None = None, overwrite: bool = False) -> dict:
+    """Run a validated recipe into ``out_dir``; returns its metrics.
+
+    The folder is locked for the run (:class:`tiledsm.provenance.OutputLock`:
+    a second run into it stops at once). Stores finished or left partial by
+    an earlier run are resumed only when their fingerprint (inputs, RPCs,
+    grid, parameters, code) equals this run's; otherwise the run stops
+    naming what changed, unless ``overwrite``. ``recipe.resolved.yaml`` and
+    ``metrics.json`` are written last, when the products are complete, so
+    they never describe products of another run.
+    """
+    from tiledsm.provenance import OutputLock
+
+    out = Path(out_dir).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    with OutputLock(out):
+        handler = _setup_log(out)
+        try:
+            log.info("running pipeline %s into %s (overwrite: %s)", recipe.pipeline, out, overwrite)
+            metrics = RUNNERS[recipe.pipeline](recipe, out, cluster, overwrite=overwrite)
+            dump_resolved(recipe, out / "recipe.resolved.yaml")
+            return metrics
+        finally:
+            logging.getLogger("tiledsm").removeHandler(handler)
+            handler.close()
 
 
 def dsm_metrics(height: xr.DataArray, reference: xr.DataArray, mask: xr.DataArray | None = None) -> dict:
@@ -111,16 +121,21 @@ def write_dsm_products(
     from tiledsm.io import write_cog, write_resumable
     from tiledsm.quicklook import quicklook as make_quicklook
 
-    timings = {}
+    timings: dict = {}
     t0 = time.perf_counter()
+    chunks: dict = {}
     with compute_context(cluster) as client:
         write_resumable(
             ds,
             out / "dsm.zarr",
             compute=lambda delayed: compute_with_progress(delayed, config=cluster, client=client),
             overwrite=overwrite,
+            report=chunks,
         )
     timings["match_s"] = time.perf_counter() - t0
+    timings["chunks"] = chunks
+    if chunks.get("chunks_reused"):
+        print(f"{out / 'dsm.zarr'}: reused {chunks['chunks_reused']} of {chunks['chunks_total']} chunks from an earlier run")
     from tiledsm.io import open_product
 
     stored = open_product(out / "dsm.zarr")

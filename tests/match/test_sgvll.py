@@ -5,15 +5,8 @@ import numpy as np
 import pytest
 
 from tiledsm.errors import MatchingError
-from tiledsm.match.sgvll import (
-    SGVLLParams,
-    bounds_from_coarse,
-    downsample,
-    height_step,
-    match_block,
-    match_pyramid,
-    scale_rpc,
-)
+from tiledsm.match.pyramid import SearchParams, downsample, search_from_coarse, search_halo
+from tiledsm.match.sgvll import SGVLLParams, height_step, match_block
 
 from match_synthetic import CRS, make_scene, scene_grid
 
@@ -56,16 +49,6 @@ def test_match_block_surface_following_band(synthetic_scene, grid):
     assert nmad < 0.06 and compl > 0.9  # measured 0.03 m
 
 
-def test_match_pyramid(synthetic_scene, grid):
-    gx, gy, truth = grid
-    d = {}
-    h, _ = match_pyramid(synthetic_scene.images, synthetic_scene.rpcs, None, gx, gy, CRS, 85.0, 125.0, details=d)
-    nmad, compl, med = _stats(h, truth)
-    assert nmad < 0.2 and compl > 0.9  # measured 0.10 m, 95 %
-    assert [lv["factor"] for lv in d["levels"]] == [4, 2, 1]
-    assert d["levels"][-1]["n_candidates"] < 40
-
-
 def test_windows_offsets_equal_full_images(synthetic_scene, grid):
     gx, gy, _ = grid
     gx, gy = gx[40:90], gy[50:100]
@@ -79,17 +62,27 @@ def test_windows_offsets_equal_full_images(synthetic_scene, grid):
 
 
 def test_block_interior_agrees_with_whole(synthetic_scene, grid):
-    """A block with a 32-cell halo reproduces the whole-grid result in its interior."""
+    """A block that knows its place in the grid, with a halo of
+    ``path_period`` cells, reproduces the whole-grid result bit for bit."""
     gx, gy, _ = grid
     sc = synthetic_scene
-    whole, _ = match_block(sc.images, sc.rpcs, None, gx, gy, CRS, 85.0, 125.0)
-    r0, r1, c0, c1 = 20, 130, 30, 150
-    part, _ = match_block(sc.images, sc.rpcs, None, gx[c0:c1], gy[r0:r1], CRS, 85.0, 125.0)
-    a = whole[r0 + 32 : r1 - 32, c0 + 32 : c1 - 32]
-    b = part[32:-32, 32:-32]
-    both = np.isfinite(a) & np.isfinite(b)
-    assert both.mean() > 0.9
-    assert np.median(np.abs(a - b)[both]) < 1e-3
+    params = SGVLLParams()
+    d = {}
+    whole, wconf = match_block(sc.images, sc.rpcs, None, gx, gy, CRS, 85.0, 125.0, params, details=d)
+    halo = params.path_period
+    r0, r1, c0, c1 = 3, 166, 27, 161  # cut on every side, 163 x 134 cells
+    part, pconf = match_block(
+        sc.images, sc.rpcs, None, gx[c0:c1], gy[r0:r1], CRS, 85.0, 125.0, params, step=d["step"], origin=(r0, c0),
+        axes=(gx[0], gy[0], gx[1] - gx[0], gy[1] - gy[0]),
+    )
+    a = whole[r0 + halo : r1 - halo, c0 + halo : c1 - halo]
+    b = part[halo:-halo, halo:-halo]
+    assert a.size > 0 and np.isfinite(a).mean() > 0.9
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(wconf[r0 + halo : r1 - halo, c0 + halo : c1 - halo], pconf[halo:-halo, halo:-halo])
+    # without its place in the grid (own lattices), the block is close but not exact
+    alone, _ = match_block(sc.images, sc.rpcs, None, gx[c0:c1], gy[r0:r1], CRS, 85.0, 125.0, params)
+    assert not np.array_equal(alone[halo:-halo, halo:-halo], b, equal_nan=True)
 
 
 def test_three_views(grid):
@@ -126,18 +119,57 @@ def test_downsample_and_scaled_rpc_consistent(synthetic_scene):
     sc = synthetic_scene
     img, rpc = sc.images[0], sc.rpcs[0]
     small = downsample(img, 2)
-    rs = scale_rpc(rpc, 0.5)
+    rs = rpc.scaled(0.5)
     lon, lat = rpc.localize(np.array([50.0, 80.2]), np.array([60.0, 101.7]), 100.0)
     r, c = rpc.project(lon, lat, 100.0)
     r2, c2 = rs.project(lon, lat, 100.0)
     assert np.allclose(r2, r / 2) and np.allclose(c2, c / 2)
     assert small.shape == (img.shape[0] // 2, img.shape[1] // 2)
     assert small[10, 10] == pytest.approx(img[20:22, 20:22].mean(), rel=1e-5)
+    # a window read at an even offset decimates to exactly the same pixels
+    part = downsample(img[6:, 10:], 2)
+    np.testing.assert_array_equal(part, small[3 : 3 + part.shape[0], 5 : 5 + part.shape[1]])
 
 
-def test_bounds_from_coarse():
-    coarse = np.array([[10.0, 12.0], [np.nan, 20.0]], np.float32)
-    lo, hi = bounds_from_coarse(coarse, 2, (4, 4), 1.0, 0.0, 100.0, radius=0, hole_radius=1)
-    assert lo[0, 0] == 9.0 and hi[0, 0] == 11.0 and lo[3, 3] == 19.0
-    # the hole takes the min/max of its neighbourhood, widened by 2 * margin
-    assert lo[3, 0] == 8.0 and hi[3, 0] == 22.0
+def _search_whole(coarse, depth, margin, h_range, params):
+    padded = np.pad(coarse, depth, constant_values=np.nan)
+    return search_from_coarse(padded, depth, margin, h_range, params)
+
+
+def test_search_from_coarse_values():
+    """Constant coarse heights give that surface and a band of +-margin;
+    under a hole the band is hole_factor times wider; beyond the fill
+    radius nothing is searched."""
+    p = SearchParams()
+    d = search_halo(p)
+    coarse = np.full((40, 40), 50.0)
+    coarse[10, 10] = np.nan
+    coarse[25:, 25:] = np.nan  # a big hole: its far corner is beyond the fill support
+    href, lo, hi = _search_whole(coarse, d, 2.0, (0.0, 100.0), p)
+    assert href.shape == (80, 80)
+    assert href[4, 4] == pytest.approx(50.0) and lo[4, 4] == pytest.approx(48.0) and hi[4, 4] == pytest.approx(52.0)
+    assert lo[21, 21] == pytest.approx(44.0) and hi[21, 21] == pytest.approx(56.0)  # coarse cell (10, 10)
+    assert np.isnan(href[79, 79]) and np.isnan(lo[79, 79])
+    # a slope is reproduced by the bilinear interpolation away from holes
+    ramp = np.add.outer(np.arange(40.0), np.zeros(40))
+    href, _, _ = _search_whole(ramp, d, 1.0, (-10.0, 100.0), p)
+    assert href[40, 7] == pytest.approx((40 + 0.5) / 2 - 0.5, abs=1e-4)
+
+
+def test_search_from_coarse_blocks_equal_whole():
+    """Any block with a halo of search_halo cells gives the whole-array
+    result on its core, bit for bit (what makes the DSM chunk-invariant)."""
+    rng = np.random.default_rng(0)
+    coarse = 100 + np.cumsum(rng.normal(size=(60, 70)), axis=1)
+    coarse[rng.random(coarse.shape) < 0.15] = np.nan
+    coarse[20:35, 30:50] = np.nan
+    p = SearchParams()
+    d = search_halo(p)
+    whole = _search_whole(coarse, d, 1.5, (80.0, 130.0), p)
+    padded = np.pad(coarse, d, constant_values=np.nan)
+    for r0, r1, c0, c1 in [(0, 17, 0, 23), (17, 60, 23, 41), (5, 38, 41, 70)]:
+        block = padded[r0 : r1 + 2 * d, c0 : c1 + 2 * d]
+        got = search_from_coarse(block, d, 1.5, (80.0, 130.0), p)
+        np.testing.assert_array_equal(got, whole[:, 2 * r0 : 2 * r1, 2 * c0 : 2 * c1])
+    with pytest.raises(MatchingError, match="halo"):
+        search_from_coarse(padded, d - 1, 1.5, (80.0, 130.0), p)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from tiledsm.cli.run import add_cluster_arguments, cluster_config
+from tiledsm.cli.run import add_cluster_arguments, add_overwrite_argument, cluster_config
 
 __all__ = ["add_parser"]
 
@@ -29,6 +29,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--reference", default=None, help="reference DSM for metrics (same vertical datum as the output)")
     p.add_argument("--geoid", default=None, help="geoid grid (e.g. egm96_15.gtx): write heights above the geoid instead of the WGS84 ellipsoid")
     add_cluster_arguments(p)
+    add_overwrite_argument(p)
     p.set_defaults(func=run)
 
 
@@ -53,6 +54,6 @@ def run(args: argparse.Namespace) -> int:
             "output": {"geoid": str(Path(args.geoid).resolve()) if args.geoid else None},
         }
     )
-    metrics = run_recipe(recipe, args.out, cluster_config(args))
+    metrics = run_recipe(recipe, args.out, cluster_config(args), overwrite=args.overwrite)
     _print_summary(metrics)
     return 0

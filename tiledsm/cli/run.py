@@ -15,6 +15,15 @@ def add_cluster_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
 
 
+def add_overwrite_argument(p: argparse.ArgumentParser) -> None:
+    """``--overwrite``, for commands that write resumable stores into ``--out``."""
+    p.add_argument(
+        "--overwrite", action="store_true",
+        help="recompute stores that an earlier run left in --out with other inputs or parameters "
+        "(default: resume only the same run, refuse otherwise)",
+    )
+
+
 def cluster_config(args: argparse.Namespace, recipe_cluster=None):
     from tiledsm.cluster import ClusterConfig
 
@@ -33,6 +42,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("recipe", help="recipe YAML file (see recipes/)")
     p.add_argument("--out", required=True, help="run folder")
     add_cluster_arguments(p)
+    add_overwrite_argument(p)
     p.set_defaults(func=run)
 
 
@@ -41,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     from tiledsm.recipes import load_recipe
 
     recipe = load_recipe(args.recipe)
-    metrics = run_recipe(recipe, args.out, cluster_config(args, getattr(recipe, "cluster", None)))
+    metrics = run_recipe(recipe, args.out, cluster_config(args, getattr(recipe, "cluster", None)), overwrite=args.overwrite)
     _print_summary(metrics)
     return 0
 

@@ -15,7 +15,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         description="Render 2 or 3 pushbroom views (uint16 GeoTIFFs with RPC tags) of a synthetic world "
         "(fractal relief, buildings, trees, natural texture) with occlusion, PSF and noise, and write the "
         "truth DSM (UTM, ellipsoidal heights) and scene.json. With --event, also the post-event scene and "
-        "the displacement truth (dh, dx, dy, dz).",
+        "the displacement truth (dh, dx, dy, dz). With --tower, one tall flat-roofed tower at the scene centre "
+        "(footprint and roof height in scene.json).",
     )
     p.add_argument("out", help="output folder")
     p.add_argument("--size", type=int, default=1024, help="image size in pixels (default 1024)")
@@ -27,6 +28,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--chunk", type=int, default=512, help="tile edge for the dask computation (default 512)")
     p.add_argument("--psf-sigma", type=float, default=None, help="Gaussian PSF sigma, pixels (default 0.5)")
     p.add_argument("--noise", type=float, default=None, help="noise standard deviation, DN (default 3)")
+    p.add_argument("--tower", type=float, default=None, metavar="HEIGHT",
+                   help="add one flat-roofed tower HEIGHT metres tall at the scene centre (default: none)")
+    p.add_argument("--tower-side", type=float, default=16.0, metavar="METRES",
+                   help="side of the tower's square footprint, metres (default 16)")
     p.add_argument("--workers", type=int, default=None, help="dask threads (default: one per core)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(func=run)
@@ -50,15 +55,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from tiledsm.synth import RadiometryParams, make_scene
+    from tiledsm.synth import RadiometryParams, TowerParams, make_scene
 
     rad = RadiometryParams()
     if args.psf_sigma is not None:
         rad = replace(rad, psf_sigma=args.psf_sigma)
     if args.noise is not None:
         rad = replace(rad, noise=args.noise)
+    tower = None if args.tower is None else TowerParams(height_m=args.tower, side_m=args.tower_side)
     info = make_scene(args.out, size=args.size, gsd=args.gsd, bh=args.bh, seed=args.seed, views=args.views,
-                      event=args.event, chunk=args.chunk, radiometry=rad, workers=args.workers)
+                      event=args.event, chunk=args.chunk, radiometry=rad, tower=tower, workers=args.workers)
     summary = {
         "out": str(info.out_dir),
         "views": [str(p) for p in info.views],
@@ -70,6 +76,9 @@ def run(args: argparse.Namespace) -> int:
         "height_range_m": [round(v, 2) for v in info.height_range],
         "seconds": round(info.timings_s.get("total", float("nan")), 2),
     }
+    if info.tower is not None:
+        summary["tower"] = {"window_rows_cols": list(info.tower.window),
+                            "roof_height_m": round(info.tower.roof_height, 3)}
     if info.event is not None:
         summary["event"] = {k: str(v) for k, v in info.event.items() if k not in ("params", "post_views")}
     if args.json:

@@ -7,7 +7,8 @@ lives in :mod:`tiledsm.dsm`.
 
 from tiledsm.match.cost import mean_zncc_cost, zncc_cost
 from tiledsm.match.sgm import aggregate, remove_speckles, winner_take_all
-from tiledsm.match.sgvll import SGVLLParams, height_step, match_block, match_pyramid, refine_search
+from tiledsm.match.pyramid import SearchParams, downsample, search_from_coarse
+from tiledsm.match.sgvll import SGVLLParams, height_step, match_block
 from tiledsm.match.stereo import StereoParams, disparity
 from tiledsm.match.tiepoints import height_range_from_tiepoints, match_tiepoints, relative_correction
 from tiledsm.match.triangulate import triangulate
@@ -21,8 +22,9 @@ __all__ = [
     "SGVLLParams",
     "height_step",
     "match_block",
-    "match_pyramid",
-    "refine_search",
+    "SearchParams",
+    "downsample",
+    "search_from_coarse",
     "StereoParams",
     "disparity",
     "triangulate",

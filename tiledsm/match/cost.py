@@ -30,65 +30,75 @@ __all__ = ["zncc_cost", "mean_zncc_cost", "COSTS"]
 
 
 @nb.njit(nogil=True, cache=True)
-def _integrals(a, b):
-    """Summed-area tables (float64) of a, b, a², b², ab and of invalid counts."""
-    ny, nx = a.shape
-    sa = np.zeros((ny + 1, nx + 1))
-    sb = np.zeros((ny + 1, nx + 1))
-    saa = np.zeros((ny + 1, nx + 1))
-    sbb = np.zeros((ny + 1, nx + 1))
-    sab = np.zeros((ny + 1, nx + 1))
-    sbad = np.zeros((ny + 1, nx + 1), dtype=np.int32)
-    for i in range(ny):
-        ra = 0.0
-        rb = 0.0
-        raa = 0.0
-        rbb = 0.0
-        rab = 0.0
-        rbad = 0
-        for j in range(nx):
-            x = a[i, j]
-            y = b[i, j]
-            if np.isfinite(x) and np.isfinite(y):
-                ra += x
-                rb += y
-                raa += x * x
-                rbb += y * y
-                rab += x * y
-            else:
-                rbad += 1
-            sa[i + 1, j + 1] = sa[i, j + 1] + ra
-            sb[i + 1, j + 1] = sb[i, j + 1] + rb
-            saa[i + 1, j + 1] = saa[i, j + 1] + raa
-            sbb[i + 1, j + 1] = sbb[i, j + 1] + rbb
-            sab[i + 1, j + 1] = sab[i, j + 1] + rab
-            sbad[i + 1, j + 1] = sbad[i, j + 1] + rbad
-    return sa, sb, saa, sbb, sab, sbad
-
-
-@nb.njit(nogil=True, cache=True)
 def _zncc_kernel(a, b, half, eps, out):
-    """Write 1 - ZNCC of windows of a and b into ``out`` (NaN where invalid)."""
+    """Write 1 - ZNCC of windows of a and b into ``out`` (NaN where invalid).
+
+    Window sums are computed afresh for every cell (column sums of the
+    window's rows, then their sum), never as running or summed-area totals:
+    a cell's cost then depends only on the values inside its window, in a
+    fixed order, so overlapping blocks of a tiled computation give
+    bit-identical costs wherever their windows coincide. (Summed-area
+    tables depend on the block origin through rounding, and lose precision
+    by cancellation on large blocks.)
+    """
     ny, nx = a.shape
-    sa, sb, saa, sbb, sab, sbad = _integrals(a, b)
-    n = (2 * half + 1) * (2 * half + 1)
+    w = 2 * half + 1
+    n = w * w
     inv_n = 1.0 / n
     for i in range(ny):
         for j in range(nx):
             out[i, j] = np.nan
+    if ny < w or nx < w:
+        return
+    # per column: sums over the w rows of the current window position
+    ca = np.empty(nx)
+    cb = np.empty(nx)
+    caa = np.empty(nx)
+    cbb = np.empty(nx)
+    cab = np.empty(nx)
+    cbad = np.empty(nx, np.int64)
     for i in range(half, ny - half):
-        i0 = i - half
-        i1 = i + half + 1
+        for j in range(nx):
+            sa = 0.0
+            sb = 0.0
+            saa = 0.0
+            sbb = 0.0
+            sab = 0.0
+            bad = 0
+            for r in range(i - half, i + half + 1):
+                x = np.float64(a[r, j])
+                y = np.float64(b[r, j])
+                if np.isfinite(x) and np.isfinite(y):
+                    sa += x
+                    sb += y
+                    saa += x * x
+                    sbb += y * y
+                    sab += x * y
+                else:
+                    bad += 1
+            ca[j] = sa
+            cb[j] = sb
+            caa[j] = saa
+            cbb[j] = sbb
+            cab[j] = sab
+            cbad[j] = bad
         for j in range(half, nx - half):
-            j0 = j - half
-            j1 = j + half + 1
-            if sbad[i1, j1] - sbad[i0, j1] - sbad[i1, j0] + sbad[i0, j0] != 0:
+            bad = 0
+            for c in range(j - half, j + half + 1):
+                bad += cbad[c]
+            if bad != 0:
                 continue
-            s_a = sa[i1, j1] - sa[i0, j1] - sa[i1, j0] + sa[i0, j0]
-            s_b = sb[i1, j1] - sb[i0, j1] - sb[i1, j0] + sb[i0, j0]
-            s_aa = saa[i1, j1] - saa[i0, j1] - saa[i1, j0] + saa[i0, j0]
-            s_bb = sbb[i1, j1] - sbb[i0, j1] - sbb[i1, j0] + sbb[i0, j0]
-            s_ab = sab[i1, j1] - sab[i0, j1] - sab[i1, j0] + sab[i0, j0]
+            s_a = 0.0
+            s_b = 0.0
+            s_aa = 0.0
+            s_bb = 0.0
+            s_ab = 0.0
+            for c in range(j - half, j + half + 1):
+                s_a += ca[c]
+                s_b += cb[c]
+                s_aa += caa[c]
+                s_bb += cbb[c]
+                s_ab += cab[c]
             va = s_aa - s_a * s_a * inv_n
             vb = s_bb - s_b * s_b * inv_n
             # flat windows carry no information

@@ -96,9 +96,25 @@ def _init(cost, i, j, out):
     return best
 
 
+@nb.njit(nogil=True, cache=True, inline="always")
+def _restarts(g, sgn, period):
+    """Whether a path moving by ``sgn`` along an axis restarts at global
+    index ``g``: it does on entering every ``period``-th line (from either
+    side), so its memory never spans more than ``period`` cells."""
+    if period <= 0:
+        return False
+    if sgn > 0:
+        return g % period == 0
+    return (g + 1) % period == 0
+
+
 @nb.njit(nogil=True, cache=True)
-def _pass(cost, base, P1, P2, guide, use_guide, gamma, S, forward):
-    """Four paths in one sweep (rows top-down if ``forward`` else bottom-up)."""
+def _pass(cost, base, P1, P2, guide, use_guide, gamma, S, forward, gi0, gj0, period):
+    """Four paths in one sweep (rows top-down if ``forward`` else bottom-up).
+
+    Cell ``[i, j]`` is cell ``[gi0 + i, gj0 + j]`` of the whole grid; with
+    ``period > 0`` every path restarts on the grid's lines every
+    ``period`` cells (see :func:`aggregate`)."""
     ny, nx, nd = cost.shape
     pad = nd + 1
     width = nd + 2 * pad
@@ -117,7 +133,7 @@ def _pass(cost, base, P1, P2, guide, use_guide, gamma, S, forward):
         # in-row path: left-to-right (forward) or right-to-left (backward)
         for u in range(nx):
             j = u if forward else nx - 1 - u
-            if u == 0:
+            if u == 0 or _restarts(gj0 + j, sgn, period):
                 rmin = _init(cost, i, j, row)
             else:
                 pj = j - sgn
@@ -131,7 +147,8 @@ def _pass(cost, base, P1, P2, guide, use_guide, gamma, S, forward):
             dx = d - 1
             for j in range(nx):
                 pj = j - dx
-                if t == 0 or pj < 0 or pj >= nx:
+                restart = _restarts(gi0 + i, sgn, period) or (dx != 0 and _restarts(gj0 + j, dx, period))
+                if t == 0 or pj < 0 or pj >= nx or restart:
                     cur_min[d, j] = _init(cost, i, j, cur[d, j])
                 else:
                     p2 = _penalty2(P1, P2, guide, use_guide, gamma, i, j, pi, pj)
@@ -164,6 +181,8 @@ def aggregate(
     guide: np.ndarray | None = None,
     p2_gamma: float = 10.0,
     invalid_cost: float = 1.0,
+    origin: tuple[int, int] = (0, 0),
+    restart_period: int = 0,
 ) -> np.ndarray:
     """Semi-global aggregation of a cost volume over 8 paths.
 
@@ -183,6 +202,19 @@ def aggregate(
         Intensity difference (guide units) that halves ``P2``.
     invalid_cost : float
         Cost given to NaN entries before aggregation.
+    origin : (int, int)
+        Index of cell ``[0, 0]`` in the whole grid (tiled runs).
+    restart_period : int
+        If > 0, every path restarts (from the cell's own cost, as at the
+        volume's edge) when it enters a grid row or column whose global
+        index is a multiple of ``restart_period`` (for paths running
+        towards lower indices: the index + 1). A cell's aggregated cost
+        then depends only on cells less than ``restart_period`` away along
+        each path, so a tile computed with a halo of ``restart_period``
+        cells gives exactly the whole-grid result on its core. (Plain
+        semi-global matching lets a path carry information across the
+        whole grid, most of all through textureless or invalid areas,
+        where costs are flat: no finite halo makes tiles exact.)
 
     Returns
     -------
@@ -205,8 +237,9 @@ def aggregate(
         raise ValueError(f"aggregate: guide has shape {g.shape}, expected {(ny, nx)}")
     S = np.zeros(c.shape, np.float32)
     p1, p2, gamma = np.float32(P1), np.float32(P2), np.float32(p2_gamma)
-    _pass(c, b, p1, p2, g, use_guide, gamma, S, True)
-    _pass(c, b, p1, p2, g, use_guide, gamma, S, False)
+    gi0, gj0, period = int(origin[0]), int(origin[1]), int(restart_period)
+    _pass(c, b, p1, p2, g, use_guide, gamma, S, True, gi0, gj0, period)
+    _pass(c, b, p1, p2, g, use_guide, gamma, S, False, gi0, gj0, period)
     return S
 
 

@@ -46,25 +46,20 @@ from tiledsm.match.sgm import aggregate, remove_speckles, winner_take_all
 __all__ = [
     "SGVLLParams",
     "height_step",
+    "pair_weights",
     "match_block",
-    "match_pyramid",
-    "bounds_from_coarse",
-    "crop_rpc",
-    "scale_rpc",
-    "downsample",
     "reference_surface",
-    "refine_search",
 ]
 
 #: cost of candidates that lie outside a cell's own height range (never chosen)
 _MASKED_COST = np.float32(4.0)
 
-_INTERP = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC}
+_INTERP = ("linear", "cubic")
 
 
 @dataclass(frozen=True)
 class SGVLLParams:
-    """Parameters of :func:`match_block` / :func:`match_pyramid`.
+    """Parameters of :func:`match_block`.
 
     Attributes
     ----------
@@ -85,7 +80,10 @@ class SGVLLParams:
         NaN where the winner is the first or last candidate of the cell's
         range (the true height is probably outside it).
     speckle_size : int
-        Connected components of fewer cells than this are removed.
+        Connected components of fewer cells than this are removed. On the
+        real ``s2p_pair``, tiledsm's gross errors (> 10 m) were isolated
+        patches of up to ~80 cells on shadowed, low-texture slopes, next to
+        holes (``benchmarks/blunders.py``); 100 removes them.
     speckle_steps : float
         Neighbours differing by at most this many height steps are connected.
     proj_stride : int
@@ -100,11 +98,6 @@ class SGVLLParams:
         Cost used for candidates without a valid ZNCC (nodata, flat).
     max_candidates : int
         Refuse blocks needing more candidates per cell than this.
-    levels : int
-        Pyramid levels of :func:`match_pyramid` (1 = full resolution only).
-    refine_steps : int
-        Steps searched on each side of the coarser DSM's local min/max at
-        finer pyramid levels.
     ref_sigma : float
         Smoothing (cells) of the reference surface built from per-cell
         bounds when no ``h_ref`` is given (see :func:`match_block`).
@@ -112,6 +105,12 @@ class SGVLLParams:
         With three or more views, weight each pair's ZNCC by its squared
         parallax per metre of height (inverse variance; see
         :func:`tiledsm.match.cost.mean_zncc_cost`); ``False``: plain mean.
+    path_period : int
+        Semi-global paths restart every ``path_period`` cells on lines of
+        the whole grid (:func:`tiledsm.match.sgm.aggregate`): each cell's
+        result depends only on cells within this distance, so tiles with
+        this halo are exact; 0 = paths never restart (tiles then differ
+        slightly near their borders).
         Measured on a 512 px synthetic scene with a middle view (B/H 0.4,
         0.2, 0.2), visible ground: NMAD 0.33 m plain, 0.28 m weighted
         (two views alone: 0.26 m, with 1 % less completeness and a worse
@@ -125,17 +124,16 @@ class SGVLLParams:
     zncc_min: float = 0.3
     ratio_max: float = 0.98
     reject_edges: bool = True
-    speckle_size: int = 25
+    speckle_size: int = 100
     speckle_steps: float = 2.0
     proj_stride: int = 8
     lattice_steps: int = 16
     interpolation: str = "cubic"
     invalid_cost: float = 1.0
     max_candidates: int = 2048
-    levels: int = 3
-    refine_steps: int = 4
     ref_sigma: float = 3.0
     weight_pairs: bool = True
+    path_period: int = 64
 
     def __post_init__(self) -> None:
         if self.window < 1 or self.window % 2 == 0:
@@ -146,48 +144,10 @@ class SGVLLParams:
             raise ValueError(f"SGVLLParams.step_px must be > 0, got {self.step_px}")
         if self.interpolation not in _INTERP:
             raise ValueError(f"SGVLLParams.interpolation must be one of {sorted(_INTERP)}, got {self.interpolation!r}")
-        if self.proj_stride < 1 or self.lattice_steps < 1 or self.levels < 1:
-            raise ValueError("SGVLLParams: proj_stride, lattice_steps and levels must be >= 1")
-
-
-# ------------------------------------------------------------------ RPC helpers
-def crop_rpc(rpc: RPC, row0: float, col0: float) -> RPC:
-    """RPC of the window starting at full-image pixel ``(row0, col0)``."""
-    if hasattr(rpc, "cropped"):
-        return rpc.cropped(row0, col0)
-    return rpc.replace(line_off=rpc.line_off - row0, samp_off=rpc.samp_off - col0)
-
-
-def scale_rpc(rpc: RPC, s: float) -> RPC:
-    """RPC of the image resampled by ``s`` (new GDAL px = old GDAL px * s;
-    e.g. ``s = 0.5`` for a 2x2 area-average downsampling)."""
-    if hasattr(rpc, "scaled"):
-        return rpc.scaled(s)
-    return rpc.replace(
-        line_off=(rpc.line_off + 0.5) * s - 0.5,
-        samp_off=(rpc.samp_off + 0.5) * s - 0.5,
-        line_scale=rpc.line_scale * s,
-        samp_scale=rpc.samp_scale * s,
-    )
-
-
-def downsample(img: np.ndarray, factor: int) -> np.ndarray:
-    """Area-average downsampling by an integer factor, NaN-aware: an output
-    pixel is NaN if any input pixel of its block is NaN. Output pixel
-    ``[i, j]`` covers input pixels ``[f*i:f*(i+1), f*j:f*(j+1)]`` (so GDAL
-    coordinates scale by ``1/f``, see :func:`scale_rpc`)."""
-    img = np.asarray(img, np.float32)
-    if factor == 1:
-        return img
-    h, w = img.shape[0] // factor, img.shape[1] // factor
-    if h == 0 or w == 0:
-        raise MatchingError(f"image window {img.shape} too small to downsample by {factor}")
-    a = img[: h * factor, : w * factor]
-    ok = np.isfinite(a)
-    out = cv2.resize(np.where(ok, a, 0).astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
-    frac = cv2.resize(ok.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
-    out[frac < 0.999] = np.nan
-    return out
+        if self.proj_stride < 1 or self.lattice_steps < 1:
+            raise ValueError("SGVLLParams: proj_stride and lattice_steps must be >= 1")
+        if self.path_period < 0 or self.speckle_size < 0:
+            raise ValueError("SGVLLParams: path_period and speckle_size must be >= 0")
 
 
 def height_step(
@@ -228,56 +188,107 @@ def height_step(
 
 
 # ------------------------------------------------------------ projection maps
+#: Keys' cubic convolution parameter (OpenCV's INTER_CUBIC uses the same)
+_CUBIC_A = -0.75
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def _keys(d, a):
+    """Keys' cubic convolution kernel at distance ``d >= 0``."""
+    if d <= 1.0:
+        return ((a + 2.0) * d - (a + 3.0)) * d * d + 1.0
+    if d < 2.0:
+        return ((a * d - 5.0 * a) * d + 8.0 * a) * d - 4.0 * a
+    return 0.0
+
+
 @nb.njit(nogil=True, cache=True)
-def _maps(lat_r, lat_c, stride, h0, dh, href, offset, r0, r1, c0, c1, mapx, mapy):
-    """Remap coordinates (all views) of cells ``[r0:r1, c0:c1]`` at heights
-    ``href + offset`` by trilinear interpolation of the sparse projection
-    lattice ``(nv, nh, gy, gx)`` (nodes every ``stride`` cells, heights
-    ``h0 + t * dh``). Writes ``mapx/mapy[v, :r1-r0, :c1-c0]``."""
-    nv, nh, gy, gx = lat_r.shape
-    inv = 1.0 / stride
+def _sample_view(img, lat_r, lat_c, stride, k0, dh, href, offset, gi0, gj0, n0i, n0j, win_r, win_c, cubic, r0, r1, c0, c1, out):
+    """Sample one view at the projections of block cells ``[r0:r1, c0:c1]``
+    at heights ``href + offset``; writes ``out[:r1-r0, :c1-c0]``.
+
+    Image coordinates come from trilinear interpolation of the sparse
+    projection lattice ``(nh, gy, gx)`` of full-image pixel coordinates in
+    the array-index convention (``row - 0.5``, ``col - 0.5``) at ground
+    nodes on *global* cell indices ``(n0i + a) * stride``,
+    ``(n0j + b) * stride`` and heights ``(k0 + t) * dh``; block cell
+    ``[i, j]`` is global cell ``[gi0 + i, gj0 + j]``. Everything is indexed
+    globally and the window origin ``(win_r, win_c)`` is subtracted last
+    (exactly), so a cell's sample is bit-identical in every block that
+    contains it. Interpolation is bicubic (Keys, a = -0.75) or bilinear; a
+    sample whose support leaves the window, or touches NaN, is NaN.
+    """
+    nh, gy, gx = lat_r.shape
+    h, w = img.shape
     for i in range(r0, r1):
-        u = i * inv
-        i0 = int(u)
+        u = (gi0 + i) / stride
+        iu = int(np.floor(u))
+        fy = u - iu
+        i0 = iu - n0i
         if i0 > gy - 2:
             i0 = gy - 2
-        fy = u - i0
+            fy = u - (i0 + n0i)
         for j in range(c0, c1):
-            w = j * inv
-            j0 = int(w)
+            wv = (gj0 + j) / stride
+            jw = int(np.floor(wv))
+            fx = wv - jw
+            j0 = jw - n0j
             if j0 > gx - 2:
                 j0 = gx - 2
-            fx = w - j0
-            t = (href[i, j] + offset - h0) / dh
-            t0 = int(np.floor(t))
+                fx = wv - (j0 + n0j)
+            tt = (href[i, j] + offset) / dh
+            kt = int(np.floor(tt))
+            ft = tt - kt
+            t0 = kt - k0
             if t0 < 0:
                 t0 = 0
+                ft = tt - k0
             elif t0 > nh - 2:
                 t0 = nh - 2
-            ft = t - t0
+                ft = tt - (k0 + t0)
             w00 = (1 - fy) * (1 - fx)
             w01 = (1 - fy) * fx
             w10 = fy * (1 - fx)
             w11 = fy * fx
-            for v in range(nv):
-                a = (
-                    w00 * lat_r[v, t0, i0, j0] + w01 * lat_r[v, t0, i0, j0 + 1]
-                    + w10 * lat_r[v, t0, i0 + 1, j0] + w11 * lat_r[v, t0, i0 + 1, j0 + 1]
-                )
-                b = (
-                    w00 * lat_r[v, t0 + 1, i0, j0] + w01 * lat_r[v, t0 + 1, i0, j0 + 1]
-                    + w10 * lat_r[v, t0 + 1, i0 + 1, j0] + w11 * lat_r[v, t0 + 1, i0 + 1, j0 + 1]
-                )
-                mapy[v, i - r0, j - c0] = a + ft * (b - a)
-                a = (
-                    w00 * lat_c[v, t0, i0, j0] + w01 * lat_c[v, t0, i0, j0 + 1]
-                    + w10 * lat_c[v, t0, i0 + 1, j0] + w11 * lat_c[v, t0, i0 + 1, j0 + 1]
-                )
-                b = (
-                    w00 * lat_c[v, t0 + 1, i0, j0] + w01 * lat_c[v, t0 + 1, i0, j0 + 1]
-                    + w10 * lat_c[v, t0 + 1, i0 + 1, j0] + w11 * lat_c[v, t0 + 1, i0 + 1, j0 + 1]
-                )
-                mapx[v, i - r0, j - c0] = a + ft * (b - a)
+            a = w00 * lat_r[t0, i0, j0] + w01 * lat_r[t0, i0, j0 + 1] + w10 * lat_r[t0, i0 + 1, j0] + w11 * lat_r[t0, i0 + 1, j0 + 1]
+            b = (
+                w00 * lat_r[t0 + 1, i0, j0] + w01 * lat_r[t0 + 1, i0, j0 + 1]
+                + w10 * lat_r[t0 + 1, i0 + 1, j0] + w11 * lat_r[t0 + 1, i0 + 1, j0 + 1]
+            )
+            y = a + ft * (b - a) - win_r
+            a = w00 * lat_c[t0, i0, j0] + w01 * lat_c[t0, i0, j0 + 1] + w10 * lat_c[t0, i0 + 1, j0] + w11 * lat_c[t0, i0 + 1, j0 + 1]
+            b = (
+                w00 * lat_c[t0 + 1, i0, j0] + w01 * lat_c[t0 + 1, i0, j0 + 1]
+                + w10 * lat_c[t0 + 1, i0 + 1, j0] + w11 * lat_c[t0 + 1, i0 + 1, j0 + 1]
+            )
+            x = a + ft * (b - a) - win_c
+            out[i - r0, j - c0] = _interpolate(img, y, x, cubic, h, w)
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def _interpolate(img, y, x, cubic, h, w):
+    if not (np.isfinite(y) and np.isfinite(x)):
+        return np.nan
+    iy = int(np.floor(y))
+    ix = int(np.floor(x))
+    fy = y - iy
+    fx = x - ix
+    if cubic:
+        if iy < 1 or ix < 1 or iy + 2 >= h or ix + 2 >= w:
+            return np.nan
+        acc = 0.0
+        for p in range(4):
+            wy = _keys(abs(fy - (p - 1)), _CUBIC_A)
+            row = 0.0
+            for q in range(4):
+                row += _keys(abs(fx - (q - 1)), _CUBIC_A) * img[iy - 1 + p, ix - 1 + q]
+            acc += wy * row
+        return acc
+    if iy < 0 or ix < 0 or iy + 1 >= h or ix + 1 >= w:
+        return np.nan
+    top = img[iy, ix] + fx * (img[iy, ix + 1] - img[iy, ix])
+    bot = img[iy + 1, ix] + fx * (img[iy + 1, ix + 1] - img[iy + 1, ix])
+    return top + fy * (bot - top)
 
 
 @nb.njit(nogil=True, cache=True)
@@ -294,14 +305,6 @@ def _scatter(cost, label, base, nvalid, r0, c0, vol):
                 vol[i, j, k] = cost[a, b]
 
 
-def _node_coords(coords: np.ndarray, stride: int) -> np.ndarray:
-    """Coordinates of lattice nodes at cell indices 0, s, 2s, ... covering all cells."""
-    n = len(coords)
-    d = float(coords[1] - coords[0]) if n > 1 else 0.0
-    g = max(2, -(-(n - 1) // stride) + 1)
-    return coords[0] + np.arange(g) * stride * d
-
-
 def _pair_weights(lat_r: np.ndarray, lat_c: np.ndarray, dh: float) -> np.ndarray:
     """``(nv, nv)`` weights of the view pairs: squared parallax per metre of
     height (pixels²/m²) at the middle of the block, from the projection
@@ -311,6 +314,21 @@ def _pair_weights(lat_r: np.ndarray, lat_c: np.ndarray, dh: float) -> np.ndarray
     dr = (lat_r[:, 1, gy, gx] - lat_r[:, 0, gy, gx]) / dh
     dc = (lat_c[:, 1, gy, gx] - lat_c[:, 0, gy, gx]) / dh
     return np.hypot(dr[:, None] - dr[None, :], dc[:, None] - dc[None, :]) ** 2
+
+
+def pair_weights(rpcs: Sequence[RPC], lon: float, lat: float, h: float) -> np.ndarray:
+    """``(nv, nv)`` squared parallax per metre of height (pixels²/m²) of
+    every view pair at ground point ``(lon, lat, h)`` (degrees, ellipsoidal
+    metres): the inverse-variance weights of :func:`match_block`'s
+    multi-view cost."""
+    d = []
+    for rpc in rpcs:
+        r0, c0 = rpc.project(lon, lat, h)
+        r1, c1 = rpc.project(lon, lat, h + 1.0)
+        d.append((float(r1 - r0), float(c1 - c0)))
+    dr = np.array([a for a, _ in d])
+    dc = np.array([b for _, b in d])
+    return (np.hypot(dr[:, None] - dr[None, :], dc[:, None] - dc[None, :]) ** 2).astype(np.float32)
 
 
 def _as_grid(v, shape, name) -> np.ndarray:
@@ -362,6 +380,9 @@ def match_block(
     step: float | None = None,
     h_ref: np.ndarray | None = None,
     details: dict | None = None,
+    origin: tuple[int, int] = (0, 0),
+    axes: tuple[float, float, float, float] | None = None,
+    pair_weights: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Heights of a block of ground cells by SGVLL matching.
 
@@ -404,6 +425,21 @@ def match_block(
         centre. Pass the same value to all blocks of one level.
     h_ref : numpy.ndarray, optional
         ``(ny, nx)`` smooth reference surface, metres (see above).
+    origin : (int, int)
+        Index of the block's cell ``[0, 0]`` in the whole grid the block
+        belongs to (a tiled run passes each block's offset).
+    axes : (x_first, y_first, dx, dy), optional
+        Centre of the whole grid's cell ``[0, 0]`` and the signed cell
+        spacing; default: derived from ``grid_x``, ``grid_y`` and
+        ``origin``. With ``origin`` and ``axes`` the sparse projection
+        lattice sits on nodes of the whole grid (every ``proj_stride``
+        cells, heights every ``lattice_steps * step`` metres from 0), so a
+        cell's image coordinates, hence its cost, do not depend on the
+        block it is computed in.
+    pair_weights : numpy.ndarray, optional
+        ``(nv, nv)`` weights of the view pairs (see ``weight_pairs``);
+        default: measured at the block centre. A tiled run passes one
+        matrix for the whole grid.
     details : dict, optional
         If given, filled with ``step`` (m), ``n_candidates`` (per cell),
         ``n_labels`` (swept), ``zncc``, ``ratio`` (arrays), ``h_ref`` and
@@ -444,10 +480,19 @@ def match_block(
     if not ok.any() or not all(np.isfinite(im).any() and min(im.shape) > 1 for im in imgs):
         return height, conf
 
-    # sparse lon/lat nodes (the RPC is smooth: exact projections every `stride` cells)
+    # sparse lon/lat nodes on the whole grid's cell lattice (the RPC is
+    # smooth: exact projections every `stride` cells)
     s = params.proj_stride
-    ngx, ngy = _node_coords(gx, s), _node_coords(gy, s)
-    X, Y = np.meshgrid(ngx, ngy)
+    gi0, gj0 = int(origin[0]), int(origin[1])
+    if axes is None:
+        dx = float(gx[1] - gx[0]) if nx > 1 else 1.0
+        dy = float(gy[1] - gy[0]) if ny > 1 else -1.0
+        axes = (float(gx[0]) - gj0 * dx, float(gy[0]) - gi0 * dy, dx, dy)
+    x_first, y_first, dx, dy = (float(a) for a in axes)
+    n0i, n0j = gi0 // s, gj0 // s
+    nodes_i = np.arange(n0i, (gi0 + ny - 1) // s + 2)
+    nodes_j = np.arange(n0j, (gj0 + nx - 1) // s + 2)
+    X, Y = np.meshgrid(x_first + (nodes_j * s) * dx, y_first + (nodes_i * s) * dy)
     lon, lat = _lonlat(crs, X, Y)
     lon, lat = np.asarray(lon), np.asarray(lat)
     if step is None:
@@ -470,26 +515,37 @@ def match_block(
         )
     lab0 = int(base[ok].min())
     lab1 = int((base + nvalid - 1)[ok].max())
-    h0 = float((href + base * step)[ok].min())
-    h1 = float((href + (base + nvalid - 1) * step)[ok].max())
-    dh = min(params.lattice_steps * step, max(h1 - h0, step))
-    nh = max(2, int(math.ceil((h1 - h0) / dh - 1e-9)) + 1)
-    hs = h0 + np.arange(nh) * dh
-    lat_r = np.empty((nv, nh, len(ngy), len(ngx)), np.float64)
+    # every sampled height (cells that do not need a label are sampled too:
+    # they sit in the ZNCC windows of cells that do), so samples are
+    # always interpolated in the lattice, never extrapolated
+    h0 = float(href.min()) + lab0 * step
+    h1 = float(href.max()) + lab1 * step
+    # height nodes on the lattice k * dh shared by every block of the grid
+    dh = params.lattice_steps * step
+    k0 = int(math.floor(h0 / dh))
+    nh = max(2, int(math.ceil(h1 / dh)) - k0 + 1)
+    lat_r = np.empty((nv, nh, len(nodes_i), len(nodes_j)), np.float64)
     lat_c = np.empty_like(lat_r)
-    for v, (rpc, (r0, c0)) in enumerate(zip(rpcs, windows)):
-        for t, h in enumerate(hs):
-            r, c = rpc.project(lon, lat, h)
-            lat_r[v, t] = r - 0.5 - r0
-            lat_c[v, t] = c - 0.5 - c0
+    for v, rpc in enumerate(rpcs):
+        for t in range(nh):
+            r, c = rpc.project(lon, lat, (k0 + t) * dh)
+            # array-index convention: pixel centre [i, j] at (i, j)
+            lat_r[v, t] = r - 0.5
+            lat_c[v, t] = c - 0.5
+    win_r = np.array([w[0] for w in windows], np.float64)
+    win_c = np.array([w[1] for w in windows], np.float64)
 
-    pair_w = _pair_weights(lat_r, lat_c, dh) if params.weight_pairs else None
+    if not params.weight_pairs:
+        pair_w = None
+    elif pair_weights is not None:
+        pair_w = np.asarray(pair_weights, np.float32)
+    else:
+        pair_w = _pair_weights(lat_r, lat_c, dh)
     t_start = time.perf_counter()
     half = params.window // 2
     vol = np.full((ny, nx, nd), _MASKED_COST, np.float32)
-    mapx = np.empty((nv, ny, nx), np.float32)
-    mapy = np.empty((nv, ny, nx), np.float32)
-    interp = _INTERP[params.interpolation]
+    cubic = params.interpolation == "cubic"
+    buf = np.empty((nv, ny, nx), np.float32)
     top_lab = base + nvalid - 1
     n_swept = 0
     for label in range(lab0, lab1 + 1):
@@ -500,21 +556,23 @@ def match_block(
         cols = np.flatnonzero(need.any(axis=0))
         r0, r1 = max(0, rows[0] - half), min(ny, rows[-1] + half + 1)
         c0, c1 = max(0, cols[0] - half), min(nx, cols[-1] + half + 1)
-        _maps(lat_r, lat_c, s, h0, dh, href, label * step, r0, r1, c0, c1, mapx, mapy)
-        samples = [
-            cv2.remap(
-                imgs[v], mapx[v, : r1 - r0, : c1 - c0], mapy[v, : r1 - r0, : c1 - c0], interp,
-                borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"),
+        samples = []
+        for v in range(nv):
+            _sample_view(
+                imgs[v], lat_r[v], lat_c[v], s, k0, dh, href, label * step, gi0, gj0, n0i, n0j,
+                win_r[v], win_c[v], cubic, r0, r1, c0, c1, buf[v],
             )
-            for v in range(nv)
-        ]
+            samples.append(buf[v, : r1 - r0, : c1 - c0])
         cost = mean_zncc_cost(samples, half, weights=pair_w)
         _scatter(cost, label, base, nvalid, r0, c0, vol)
         n_swept += 1
     t_cost = time.perf_counter() - t_start
 
     t_start = time.perf_counter()
-    S = aggregate(vol, params.P1, params.P2, base=base, invalid_cost=params.invalid_cost)
+    S = aggregate(
+        vol, params.P1, params.P2, base=base, invalid_cost=params.invalid_cost,
+        origin=(gi0, gj0), restart_period=params.path_period,
+    )
     index, _, ratio, cbest = winner_take_all(S, vol, nvalid)
     t_sgm = time.perf_counter() - t_start
 
@@ -532,183 +590,4 @@ def match_block(
             step=step, n_candidates=nd, n_labels=n_swept, zncc=zncc, ratio=ratio, h_ref=href,
             t_cost=t_cost, t_sgm=t_sgm,
         )
-    return height, conf
-
-
-# ------------------------------------------------------------ coarse to fine
-def bounds_from_coarse(
-    coarse: np.ndarray,
-    factor: int,
-    shape: tuple[int, int],
-    margin: float,
-    h_lo,
-    h_hi,
-    radius: int = 1,
-    hole_radius: int = 4,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per-cell search bounds of a finer level from a coarser height map.
-
-    Coarse cell ``[I, J]`` covers fine cells ``[factor*I : factor*(I+1),
-    factor*J : factor*(J+1)]`` (grids sharing their top-left corner). The
-    bounds are the min/max of the coarse heights over a
-    ``(2*radius+1)²`` coarse neighbourhood, widened by ``margin`` metres.
-    Cells with no coarse height within ``radius`` take the min/max within
-    ``hole_radius`` (widened by ``2 * margin``), and else the full range
-    ``[h_lo, h_hi]``. Results are clipped to ``[h_lo, h_hi]``.
-
-    Returns
-    -------
-    lo, hi : numpy.ndarray
-        ``shape`` float32 arrays, metres.
-    """
-    from scipy import ndimage
-
-    c = np.asarray(coarse, np.float32)
-    ny, nx = shape
-    full_lo = np.broadcast_to(np.asarray(h_lo, np.float32), shape)
-    full_hi = np.broadcast_to(np.asarray(h_hi, np.float32), shape)
-    valid = np.isfinite(c)
-    if not valid.any():
-        return full_lo.astype(np.float32), full_hi.astype(np.float32)
-
-    def minmax(r):
-        size = 2 * r + 1
-        mn = ndimage.minimum_filter(np.where(valid, c, np.inf), size=size, mode="nearest")
-        mx = ndimage.maximum_filter(np.where(valid, c, -np.inf), size=size, mode="nearest")
-        return mn, mx
-
-    mn, mx = minmax(radius)
-    mn = mn - margin
-    mx = mx + margin
-    mn2, mx2 = minmax(hole_radius)
-    hole = ~np.isfinite(mn)
-    mn[hole] = mn2[hole] - 2 * margin
-    mx[hole] = mx2[hole] + 2 * margin
-    ii = np.minimum(np.arange(ny) // factor, c.shape[0] - 1)
-    jj = np.minimum(np.arange(nx) // factor, c.shape[1] - 1)
-    lo = mn[np.ix_(ii, jj)]
-    hi = mx[np.ix_(ii, jj)]
-    lo = np.where(np.isfinite(lo), np.maximum(lo, full_lo), full_lo)
-    hi = np.where(np.isfinite(hi), np.minimum(hi, full_hi), full_hi)
-    bad = hi < lo
-    lo = np.where(bad, full_lo, lo)
-    hi = np.where(bad, full_hi, hi)
-    return lo.astype(np.float32), hi.astype(np.float32)
-
-
-def refine_search(
-    coarse: np.ndarray,
-    factor: int,
-    shape: tuple[int, int],
-    margin: float,
-    h_lo,
-    h_hi,
-    smooth: float = 1.0,
-    hole_factor: float = 3.0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Search surface and bounds of a finer level from a coarser height map.
-
-    The coarser heights (holes filled with the nearest valid height) are
-    interpolated bilinearly to the finer cells (coarse cell ``[I, J]`` covers
-    fine cells ``[factor*I : factor*(I+1), ...]``, grids sharing their
-    top-left corner) and smoothed (Gaussian, ``smooth`` coarse cells): this
-    is the reference surface ``h_ref`` of :func:`match_block`. Each cell
-    searches ``h_ref ± margin`` (``± hole_factor * margin`` where the coarse
-    height was a hole), clipped to ``[h_lo, h_hi]``.
-
-    Returns
-    -------
-    lo, hi, h_ref : numpy.ndarray
-        ``shape`` float32 arrays, metres. Without any coarse height, the
-        full range and its middle.
-    """
-    from scipy import ndimage
-
-    c = np.asarray(coarse, np.float64)
-    ny, nx = shape
-    full_lo = np.broadcast_to(np.asarray(h_lo, np.float64), shape)
-    full_hi = np.broadcast_to(np.asarray(h_hi, np.float64), shape)
-    valid = np.isfinite(c)
-    if not valid.any():
-        return full_lo.astype(np.float32), full_hi.astype(np.float32), ((full_lo + full_hi) / 2).astype(np.float32)
-    dist, (ii, jj) = ndimage.distance_transform_edt(~valid, return_indices=True)
-    filled = c[ii, jj]
-    if smooth > 0:
-        filled = ndimage.gaussian_filter(filled, smooth, mode="nearest")
-    u = (np.arange(ny) + 0.5) / factor - 0.5
-    v = (np.arange(nx) + 0.5) / factor - 0.5
-    U, V = np.meshgrid(u, v, indexing="ij")
-    href = ndimage.map_coordinates(filled, [U, V], order=1, mode="nearest")
-    hole = ndimage.map_coordinates((dist > 0).astype(np.float64), [U, V], order=1, mode="nearest") > 0
-    m = np.where(hole, hole_factor * margin, margin)
-    lo = np.clip(href - m, full_lo, full_hi)
-    hi = np.clip(href + m, full_lo, full_hi)
-    bad = hi <= lo
-    lo = np.where(bad, full_lo, lo)
-    hi = np.where(bad, full_hi, hi)
-    return lo.astype(np.float32), hi.astype(np.float32), np.clip(href, full_lo, full_hi).astype(np.float32)
-
-
-def match_pyramid(
-    images: Sequence[np.ndarray],
-    rpcs: Sequence[RPC],
-    windows: Sequence[tuple[int, int]] | None,
-    grid_x: np.ndarray,
-    grid_y: np.ndarray,
-    crs,
-    h_lo,
-    h_hi,
-    params: SGVLLParams = SGVLLParams(),
-    details: dict | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Coarse-to-fine SGVLL on one block (in memory).
-
-    Level ``L = params.levels - 1 .. 0`` matches images downsampled by
-    ``f = 2**L`` (:func:`downsample`, RPCs by :func:`scale_rpc`) on a grid
-    of cells ``f`` times larger sharing the top-left corner of the given
-    grid, searching the full ``[h_lo, h_hi]`` at the coarsest level and,
-    below, ``params.refine_steps`` steps around the coarser heights
-    (:func:`bounds_from_coarse`). Arguments and returns as
-    :func:`match_block`; ``details`` receives one dict per level under
-    ``"levels"``.
-    """
-    nv = len(images)
-    windows = [(0, 0)] * nv if windows is None else list(windows)
-    rpcs = [crop_rpc(r, r0, c0) for r, (r0, c0) in zip(rpcs, windows)]
-    gx = np.asarray(grid_x, np.float64).ravel()
-    gy = np.asarray(grid_y, np.float64).ravel()
-    ny, nx = len(gy), len(gx)
-    dx = gx[1] - gx[0] if nx > 1 else 1.0
-    dy = gy[1] - gy[0] if ny > 1 else -1.0
-    coarse = None
-    per_level = []
-    height = conf = None
-    for level in range(params.levels - 1, -1, -1):
-        f = 2**level
-        lx = gx[0] - dx / 2 + (np.arange(-(-nx // f)) + 0.5) * dx * f
-        ly = gy[0] - dy / 2 + (np.arange(-(-ny // f)) + 0.5) * dy * f
-        try:
-            imgs = [downsample(im, f) for im in images]
-        except MatchingError:
-            continue
-        rp = [scale_rpc(r, 1.0 / f) for r in rpcs]
-        href = None
-        if coarse is None:
-            lo, hi = h_lo, h_hi
-        else:
-            X, Y = np.meshgrid(lx[:: max(1, len(lx) // 4)], ly[:: max(1, len(ly) // 4)])
-            lon, lat = _lonlat(crs, X, Y)
-            h_mid = float(np.nanmean(coarse))
-            st = height_step(rp, float(np.mean(lon)), float(np.mean(lat)), h_mid, params)
-            sub = (slice(None, None, f), slice(None, None, f))
-            blo = np.broadcast_to(np.asarray(h_lo, np.float32), (ny, nx))[sub][: len(ly), : len(lx)]
-            bhi = np.broadcast_to(np.asarray(h_hi, np.float32), (ny, nx))[sub][: len(ly), : len(lx)]
-            lo, hi, href = refine_search(coarse, 2, (len(ly), len(lx)), params.refine_steps * st, blo, bhi)
-        d: dict = {}
-        height, conf = match_block(imgs, rp, None, lx, ly, crs, lo, hi, params, h_ref=href, details=d)
-        d["factor"] = f
-        per_level.append(d)
-        coarse = height
-    if details is not None:
-        details["levels"] = per_level
     return height, conf

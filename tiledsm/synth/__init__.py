@@ -5,7 +5,8 @@ post-event version with a known displacement field).
 Public API: :func:`make_scene` -> :class:`SceneInfo`, :func:`degrade`,
 :func:`make_world`, :class:`World`, :class:`EventParams`,
 :class:`RadiometryParams`, :class:`TerrainParams`, :class:`TextureParams`,
-:class:`VisibilityParams`, :func:`visibility_window` (per-view visibility truth).
+:class:`VisibilityParams`, :func:`visibility_window` (per-view visibility truth),
+:class:`TowerParams` and :class:`Tower` (one tall flat-roofed tower).
 """
 
 from tiledsm.synth.degrade import degrade
@@ -14,6 +15,7 @@ from tiledsm.synth.render import RadiometryParams, render_window
 from tiledsm.synth.scene import SceneInfo, make_scene
 from tiledsm.synth.terrain import TerrainParams, World, make_world
 from tiledsm.synth.texture import TextureParams
+from tiledsm.synth.tower import Tower, TowerParams, place_tower
 from tiledsm.synth.visibility import VisibilityParams, visibility_window
 
 __all__ = [
@@ -30,4 +32,7 @@ __all__ = [
     "render_window",
     "VisibilityParams",
     "visibility_window",
+    "TowerParams",
+    "Tower",
+    "place_tower",
 ]

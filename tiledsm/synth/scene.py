@@ -24,7 +24,11 @@ with occlusion (:mod:`tiledsm.synth.render`) and writes, under ``out_dir``:
   ``dh.tif`` (post minus pre DSM), ``dx.tif``, ``dy.tif``, ``dz.tif``
   (metres; convention in :mod:`tiledsm.synth.event`);
 - ``scene.json``: parameters, cameras, B/H measured from the fitted RPCs,
-  RPC fit residuals, height range, paths.
+  RPC fit residuals, height range, paths (and the tower, if any).
+
+With ``tower=TowerParams(...)`` the world holds one tall, narrow, flat-roofed
+tower (:mod:`tiledsm.synth.tower`) whose footprint is the truth-grid window
+:attr:`SceneInfo.tower_window`; every raster above includes it.
 
 Every raster is computed tile by tile with dask (one task per chunk; a
 view tile evaluates only the ground its lines of sight cross) and streamed
@@ -43,7 +47,7 @@ import json
 import math
 import threading
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +58,7 @@ from tiledsm.synth.event import EventParams, PostEventWorld, evaluate_post
 from tiledsm.synth.render import RadiometryParams, render_window
 from tiledsm.synth.terrain import TerrainParams, World, make_world
 from tiledsm.synth.texture import TextureParams
+from tiledsm.synth.tower import Tower, TowerParams, place_tower
 from tiledsm.synth.visibility import VisibilityParams, visibility_window
 
 __all__ = ["SceneInfo", "make_scene", "view_pitches"]
@@ -108,6 +113,9 @@ class SceneInfo:
         The world itself (re-evaluable anywhere).
     timings_s : dict
         Wall time of each stage, seconds.
+    tower : Tower or None
+        The tower, when one was asked: truth-grid ``window``, ``footprint``
+        (local metres), ``roof_height`` (metres, ellipsoidal), ``params``.
     """
 
     out_dir: Path
@@ -129,6 +137,13 @@ class SceneInfo:
     event: dict | None
     world: World = field(repr=False)
     timings_s: dict = field(default_factory=dict)
+    tower: Tower | None = None
+
+    @property
+    def tower_window(self) -> tuple[int, int, int, int] | None:
+        """``(row0, row1, col0, col1)``: half-open truth-grid cell ranges of
+        the tower's roof (its footprint exactly), or None without a tower."""
+        return None if self.tower is None else self.tower.window
 
 
 def view_pitches(bh: float, views: int) -> tuple[float, ...]:
@@ -313,6 +328,7 @@ def make_scene(
     radiometry: RadiometryParams | None = None,
     event_params: EventParams | None = None,
     visibility: VisibilityParams | None = None,
+    tower: TowerParams | None = None,
     workers: int | None = None,
 ) -> SceneInfo:
     """Make a synthetic stereo scene with known truth (see module docstring).
@@ -344,6 +360,9 @@ def make_scene(
     terrain, texture, radiometry, event_params, visibility : optional
         Model parameters (defaults when omitted; the event defaults scale with
         the scene extent).
+    tower : TowerParams, optional
+        Place one tall flat-roofed tower (default: none; a scene without
+        one is the same as before towers existed).
     workers : int, optional
         Dask threads (default: one per core).
 
@@ -373,6 +392,8 @@ def make_scene(
     origin = (float(round(e0)), float(round(n0)))
     extent = size * gsd
     grid = GroundGrid(crs, origin[0] - extent / 2, origin[1] + extent / 2, gsd, size, size, chunk)
+    if tower is not None:
+        world = replace(world, tower=place_tower(world, tower, grid, origin))
     ev = None
     ground_post = None
     if event:
@@ -454,7 +475,7 @@ def make_scene(
         height_range=tuple(h_range), bh=bh_pairs["0-1"], bh_pairs=bh_pairs,
         fit_residual_px=tuple(f[1].check_max_px for f in fits), visible_mask=visible_mask,
         visible_views=visible_views, edge_mask=edge_mask, event=event_info, world=world,
-        timings_s=timings,
+        timings_s=timings, tower=world.tower,
     )
     _write_json(info, size=size, gsd=gsd, bh_asked=bh, seed=seed, views=views, chunk=chunk, center=center,
                 radiometry=radiometry, visibility=visibility, fits=fits)
@@ -511,6 +532,8 @@ def _write_json(info: SceneInfo, *, fits, radiometry, visibility, **params) -> N
                   "visibility": {**asdict(visibility), "definition": _VIS_DEFINITION}},
         "timings_s": info.timings_s,
     }
+    if info.tower is not None:
+        doc["tower"] = info.tower.to_dict(info.grid, info.origin)
     if info.event is not None:
         ev = info.event
         doc["event"] = {

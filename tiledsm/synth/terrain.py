@@ -14,7 +14,8 @@ whatever the tiling:
   a smooth "vegetation" field; dome-topped crowns with steep sides, which
   make rough vegetation-like canopy;
 - albedo: ground texture with a natural ``1/f`` amplitude spectrum
-  (:mod:`tiledsm.synth.texture`), per-building roof albedo and darker trees.
+  (:mod:`tiledsm.synth.texture`), per-building roof albedo and darker trees;
+- optionally one tall tower (:mod:`tiledsm.synth.tower`).
 
 Surface classes in the label map: 0 ground, 1 building, 2 tree.
 """
@@ -29,6 +30,7 @@ import numpy as np
 
 from tiledsm.synth.noise import SpectralField, cell_uniforms, power_law_field
 from tiledsm.synth.texture import TextureParams, ground_albedo, make_texture_field
+from tiledsm.synth.tower import Tower, apply_tower
 
 __all__ = ["TerrainParams", "World", "make_world"]
 
@@ -94,7 +96,10 @@ class World:
     """A deterministic synthetic world (see module docstring).
 
     Build it with :func:`make_world`. Coordinates are local metres relative
-    to the scene origin; heights are metres above the WGS84 ellipsoid.
+    to the scene origin; heights are metres above the WGS84 ellipsoid. An
+    optional :class:`~tiledsm.synth.tower.Tower` (``tower``, added with
+    ``dataclasses.replace(world, tower=place_tower(...))``) is drawn over
+    the relief, buildings and trees.
     """
 
     seed: int
@@ -105,6 +110,8 @@ class World:
     vegetation: SpectralField
     albedo_field: SpectralField
     veg_threshold: float = field(default=0.0)
+    #: optional tall tower (:mod:`tiledsm.synth.tower`), drawn over everything else
+    tower: Tower | None = field(default=None)
 
     # ----------------------------------------------------------- bounds
     def height_bounds(self, xmin: float, xmax: float, ymin: float, ymax: float) -> tuple[float, float]:
@@ -120,7 +127,10 @@ class World:
         ys = np.arange(ymin, ymax + step, step)
         r = self.relief.grid(xs, ys, dtype=np.float64) + self.terrain.base_height
         slack = self.relief.variation_bound(step / math.sqrt(2.0)) + 0.01
-        return float(r.min() - slack), float(r.max() + slack + self.terrain.object_height_max)
+        lo, hi = float(r.min() - slack), float(r.max() + slack + self.terrain.object_height_max)
+        if self.tower is not None and self.tower.intersects(xmin, xmax, ymin, ymax):
+            hi = max(hi, self.tower.roof_height + 0.01)
+        return lo, hi
 
     # ----------------------------------------------------------- evaluate
     def evaluate(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -150,7 +160,11 @@ class World:
         label = np.zeros(height.shape, np.uint8)
         bcell, bi0, bj0, bpar = self._buildings(x, y)
         tcell, ti0, tj0, tpar = self._trees(x, y)
+        tower = self.tower
+        bare = height.copy() if tower is not None and tower.params.clearance_m > 0 else None
         _place_objects(x, y, height, albedo, label, tex, bcell, bi0, bj0, bpar, tcell, ti0, tj0, tpar)
+        if tower is not None:
+            apply_tower(tower, x, y, height, albedo, label, tex, bare, self.texture)
         return height, albedo, label
 
     def _lattice(self, x, y, cell, pad):

@@ -1,0 +1,196 @@
+"""Coarse to fine: image pyramids and the search band a coarser DSM gives
+the next finer level.
+
+Pyramid level ``L`` matches images downsampled by ``f = 2**L`` on a ground
+grid of cells ``f`` times larger that shares the top-left corner of the
+full-resolution grid, so coarse cell ``[I, J]`` covers finer cells
+``[2I : 2I+2, 2J : 2J+2]`` of the next level.
+
+Everything here is a pure function of a block *and a halo whose depth is
+stated* (:func:`search_halo`): computed on any block of a chunked array
+with that halo, the result on the block's core equals the result on the
+whole array, bit for bit. This is what makes the tiled DSM independent of
+its chunking.
+
+Conventions: heights in metres (ellipsoidal), NaN = no height; image
+arrays float32 with NaN nodata; downsampled pixel ``[i, j]`` covers pixels
+``[f*i : f*(i+1), f*j : f*(j+1)]`` (GDAL coordinates scale by ``1/f``,
+:meth:`tiledsm.geometry.RPC.scaled`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from tiledsm.errors import MatchingError
+
+__all__ = ["SearchParams", "downsample", "search_halo", "search_from_coarse"]
+
+
+@dataclass(frozen=True)
+class SearchParams:
+    """How a coarser DSM becomes the search band of the next finer level.
+
+    Attributes
+    ----------
+    smooth : float
+        Gaussian sigma (coarse cells) of the NaN-aware smoothing that turns
+        the coarser heights into the reference surface ``h_ref``.
+    fill_sigma : float
+        Gaussian sigma (coarse cells) of the wider NaN-aware average used
+        where no coarser height lies within the ``smooth`` support (holes).
+        Cells farther than its support from any coarser height are not
+        searched (NaN): the coarser level found nothing around them.
+    truncate : float
+        Both Gaussians are cut at ``truncate * sigma`` (the halo depth).
+    hole_factor : float
+        The band is ``hole_factor`` times wider where the coarser cell
+        itself had no height.
+    """
+
+    smooth: float = 1.0
+    fill_sigma: float = 4.0
+    truncate: float = 3.0
+    hole_factor: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.smooth <= 0 or self.fill_sigma < self.smooth or self.truncate <= 0 or self.hole_factor < 1:
+            raise ValueError(
+                f"SearchParams: need 0 < smooth <= fill_sigma, truncate > 0, hole_factor >= 1; got {self}"
+            )
+
+
+def downsample(img: np.ndarray, factor: int) -> np.ndarray:
+    """Area-average downsampling by an integer factor, NaN-aware.
+
+    An output pixel is NaN if any input pixel of its block is NaN. Output
+    pixel ``[i, j]`` covers input pixels ``[f*i:f*(i+1), f*j:f*(j+1)]``;
+    trailing rows/columns that do not fill a block are dropped. A window
+    read at a row/column that is a multiple of ``factor`` downsamples to
+    exactly the pixels of the whole downsampled image.
+    """
+    img = np.asarray(img, np.float32)
+    if factor == 1:
+        return img
+    h, w = img.shape[0] // factor, img.shape[1] // factor
+    if h == 0 or w == 0:
+        raise MatchingError(f"image window {img.shape} too small to downsample by {factor}")
+    a = img[: h * factor, : w * factor]
+    # the f*f pixels of a block summed in one fixed order (NaN propagates):
+    # every output pixel is the same arithmetic wherever the window starts
+    # (OpenCV's area resize is not: its vectorised body and scalar tail
+    # round differently)
+    acc = np.zeros((h, w), np.float64)
+    for di in range(factor):
+        for dj in range(factor):
+            acc += a[di::factor, dj::factor]
+    return (acc / (factor * factor)).astype(np.float32)
+
+
+def _radius(sigma: float, truncate: float) -> int:
+    # scipy.ndimage.gaussian_filter's kernel radius
+    return int(truncate * float(sigma) + 0.5)
+
+
+def search_halo(params: SearchParams = SearchParams()) -> int:
+    """Halo (coarse cells) that :func:`search_from_coarse` needs around a
+    block: the wider Gaussian's radius plus one cell of bilinear support."""
+    return _radius(params.fill_sigma, params.truncate) + 1
+
+
+def _nan_mean(values: np.ndarray, valid: np.ndarray, sigma: float, truncate: float) -> np.ndarray:
+    """Gaussian-weighted mean of the valid values (NaN where the kernel
+    holds none). Cells beyond the array count as invalid."""
+    num = ndimage.gaussian_filter(np.where(valid, values, 0.0), sigma, mode="constant", cval=0.0, truncate=truncate)
+    den = ndimage.gaussian_filter(valid.astype(np.float64), sigma, mode="constant", cval=0.0, truncate=truncate)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 1e-9, num / den, np.nan)
+
+
+def search_from_coarse(
+    coarse: np.ndarray,
+    depth: int,
+    margin: float,
+    h_range: tuple[float, float],
+    params: SearchParams = SearchParams(),
+) -> np.ndarray:
+    """Reference surface and search band of a finer level from a block of
+    the coarser level's heights.
+
+    The coarser heights are smoothed (NaN-aware Gaussian, ``smooth``), holes
+    filled by a wider NaN-aware Gaussian (``fill_sigma``), and interpolated
+    bilinearly (NaN-aware) to the centres of the finer cells: the reference
+    surface ``h_ref``. A finer cell searches ``h_ref ± margin``
+    (``± hole_factor * margin`` where the coarser cell under it had no
+    height), clipped to ``h_range``.
+
+    Parameters
+    ----------
+    coarse : numpy.ndarray
+        ``(ny + 2 depth, nx + 2 depth)`` coarser heights (metres, NaN = none)
+        of a block and its halo; cells beyond the grid are NaN.
+    depth : int
+        Halo width, coarse cells; at least :func:`search_halo` of
+        ``params`` for the result to equal the whole-grid result.
+    margin : float
+        Half-width of the band, metres (a few finer height steps).
+    h_range : (float, float)
+        The scene's height range, metres.
+    params : SearchParams
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(3, 2 ny, 2 nx)`` float32: ``h_ref``, ``lo``, ``hi`` of the finer
+        cells covered by the block's core. NaN in all three where no
+        coarser height lies within the fill support (not searched).
+    """
+    need = search_halo(params)
+    if depth < need:
+        raise MatchingError(f"search_from_coarse: halo {depth} < {need} coarse cells needed by {params}")
+    c = np.asarray(coarse, np.float64)
+    valid = np.isfinite(c)
+    ref = _nan_mean(c, valid, params.smooth, params.truncate)
+    fill = _nan_mean(c, valid, params.fill_sigma, params.truncate)
+    ref = np.where(np.isfinite(ref), ref, fill)
+    hole = ~valid
+    ny, nx = c.shape[0] - 2 * depth, c.shape[1] - 2 * depth
+    # finer cell i of the core sits at coarse coordinate (i + 0.5) / 2 - 0.5
+    # from the core's first cell: between coarse cells floor(u) and floor(u)+1
+    u = (np.arange(2 * ny) + 0.5) / 2 - 0.5 + depth
+    v = (np.arange(2 * nx) + 0.5) / 2 - 0.5 + depth
+    i0 = np.floor(u).astype(int)
+    j0 = np.floor(v).astype(int)
+    fy = (u - i0)[:, None]
+    fx = (v - j0)[None, :]
+    num = np.zeros((2 * ny, 2 * nx))
+    den = np.zeros((2 * ny, 2 * nx))
+    any_hole = np.zeros((2 * ny, 2 * nx), bool)
+    for di, wy in ((0, 1 - fy), (1, fy)):
+        for dj, wx in ((0, 1 - fx), (1, fx)):
+            vals = ref[np.ix_(i0 + di, j0 + dj)]
+            w = wy * wx * np.isfinite(vals)
+            num += np.where(w > 0, w * np.nan_to_num(vals), 0.0)
+            den += w
+            any_hole |= (wy * wx > 0) & hole[np.ix_(i0 + di, j0 + dj)]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        href = np.where(den > 1e-12, num / den, np.nan)
+    m = np.where(any_hole, params.hole_factor * margin, margin)
+    lo_r, hi_r = float(h_range[0]), float(h_range[1])
+    lo = np.clip(href - m, lo_r, hi_r)
+    hi = np.clip(href + m, lo_r, hi_r)
+    href = np.clip(href, lo_r, hi_r)
+    bad = ~np.isfinite(href) | (hi <= lo)
+    out = np.stack([href, lo, hi]).astype(np.float32)
+    out[:, bad] = np.nan
+    return out
+
+
+def level_shape(shape: tuple[int, int], level: int) -> tuple[int, int]:
+    """Shape of pyramid level ``level`` of a grid of ``shape`` cells."""
+    f = 2**level
+    return (max(1, math.ceil(shape[0] / f)), max(1, math.ceil(shape[1] / f)))
