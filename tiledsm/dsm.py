@@ -511,8 +511,12 @@ def despeckle(height: da.Array, geom: LevelGeometry, params: DSMParams) -> da.Ar
     if size <= 1:
         return height
     chunks = height.chunks
+    # an axis no longer than the halo is taken whole (dask needs depth < size)
+    short = {ax: -1 for ax in (0, 1) if height.shape[ax] <= size}
+    depth = {ax: (0 if ax in short else size) for ax in (0, 1)}
     out = da.map_overlap(
-        _despeckle_block, height, depth=size, boundary="none", trim=True, dtype=np.float32,
+        _despeckle_block, height.rechunk(short) if short else height, depth=depth, boundary="none", trim=True,
+        dtype=np.float32,
         max_diff=float(params.match.speckle_steps * geom.step), min_size=size,
     )
     return out.rechunk(chunks)
