@@ -141,33 +141,6 @@ def test_distributed_cluster_matches_local(scene, scene_dsms, tmp_path):
     np.testing.assert_array_equal(remote["height"].values, scene_dsms[1024]["height"].values)
 
 
-def test_resume_keeps_finished_chunks(scene, tmp_path):
-    # a 384 x 384 cell part of the scene in 3 x 3 chunks keeps the test short
-    grid = GroundGrid.like(scene.truth_dsm, chunk=128).subgrid(320, 704, 320, 704)
-    params = DSMParams(chunk=128, levels=2)
-    ds, _ = dsm_from_pair(*scene.views, grid=grid, params=params)
-    out = tmp_path / "run"
-    calls = []
-
-    def crash_after_two(delayed):
-        # compute two blocks, then "crash"
-        import dask
-
-        parts = delayed if isinstance(delayed, (list, tuple)) else [delayed]
-        calls.append(len(parts))
-        dask.compute(*parts[:2], scheduler="synchronous")
-        raise KeyboardInterrupt
-
-    from tiledsm.io import write_resumable
-
-    with pytest.raises(KeyboardInterrupt):
-        write_resumable(ds, out / "dsm.zarr", compute=crash_after_two)
-    assert not (out / "dsm.zarr").exists()  # nothing under the final name
-    full = _compute(ds, out)
-    ref = _compute(ds, tmp_path / "fresh")
-    np.testing.assert_array_equal(full["height"].values, ref["height"].values)
-
-
 def test_views_without_overlap(shared_data, tmp_path):
     a = shared_data("rpc_models", "shareloc", "wv3_20.NTF")
     b = shared_data("rpc_models", "shareloc", "wv3_30.NTF")

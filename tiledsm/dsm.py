@@ -413,7 +413,8 @@ def level_chunks(n: int, chunk: int, min_size: int) -> tuple[int, ...]:
     (a halo must fit in every chunk)."""
     sizes = [chunk] * (n // chunk) + ([n % chunk] if n % chunk else [])
     if len(sizes) > 1 and sizes[-1] < min_size:
-        sizes[-2] += sizes.pop()
+        last = sizes.pop()
+        sizes[-1] += last
     return tuple(sizes)
 
 

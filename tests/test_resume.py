@@ -1,0 +1,285 @@
+"""Resuming, refusing and locking run folders, through the command line.
+
+Each test runs ``python -m tiledsm dsm`` in a subprocess (the way users run
+it: a crash is a real SIGKILL of the process group, a concurrent run a second
+process) on one small synthetic scene (384 px) on its truth grid.
+
+``P1`` (chunk 64: 6 x 6 = 36 chunks, 2 pyramid levels, height range from tie
+points) is the reference parameter set; a finished ``P1`` folder is made once
+(:func:`finished`) and copied where a test needs a finished run.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from tiledsm.io import open_product
+from tiledsm.synth import make_scene
+
+P1 = ("--chunk", "64", "--levels", "2")
+TOTAL = 36  # chunks of P1 on the 384-cell grid
+ERROR_PREFIX = "tiledsm dsm: error:"
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return make_scene(tmp_path_factory.mktemp("scene"), size=384, gsd=0.5, bh=0.4, seed=3, views=2)
+
+
+def dsm_cmd(views, like, out: Path, *extra: str, scheduler: str = "synchronous") -> list[str]:
+    return [
+        sys.executable, "-m", "tiledsm", "dsm", *map(str, views), "--like", str(like), "--out", str(out),
+        "--scheduler", scheduler, "--no-progress", *extra,
+    ]
+
+
+def run(cmd: list[str], timeout: float = 240, **env: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        cmd, capture_output=True, text=True, timeout=timeout, env={**os.environ, **env} if env else None
+    )
+
+
+def _ok(r: subprocess.CompletedProcess) -> None:
+    assert r.returncode == 0, f"rc {r.returncode}\n--- stdout\n{r.stdout[-3000:]}\n--- stderr\n{r.stderr[-3000:]}"
+
+
+def error_line(r: subprocess.CompletedProcess) -> str:
+    """The one error line of a refused run (and no traceback)."""
+    assert r.returncode != 0, f"expected a refusal, got rc 0\n{r.stdout[-2000:]}"
+    assert "Traceback" not in r.stderr, r.stderr[-3000:]
+    lines = [ln for ln in r.stderr.splitlines() if ln.startswith(ERROR_PREFIX)]
+    assert len(lines) == 1, f"expected one '{ERROR_PREFIX}' line in stderr:\n{r.stderr[-3000:]}"
+    return lines[0]
+
+
+def metrics(out: Path) -> dict:
+    return json.loads((out / "metrics.json").read_text())
+
+
+def recipe(out: Path) -> dict:
+    return yaml.safe_load((out / "recipe.resolved.yaml").read_text())
+
+
+def store_fingerprint(store: Path) -> dict:
+    import zarr
+
+    return json.loads(zarr.open_group(str(store), mode="r").attrs["fingerprint"])
+
+
+def done_count(partial: Path) -> int | None:
+    """Chunks marked done in a partial store (None while it is not there or
+    not readable)."""
+    import zarr
+
+    try:
+        return int(np.asarray(zarr.open_array(store=str(partial), path="_progress/done", mode="r")[...]).sum())
+    except Exception:
+        return None
+
+
+def products(out: Path) -> dict[str, bytes]:
+    """Bytes of the products a refused run must leave alone."""
+    names = ("metrics.json", "recipe.resolved.yaml", "dsm.tif", "dsm.zarr/zarr.json")
+    return {n: (out / n).read_bytes() for n in names}
+
+
+def heights(out: Path) -> tuple[np.ndarray, np.ndarray]:
+    ds = open_product(out / "dsm.zarr")
+    return ds["height"].values, ds["confidence"].values
+
+
+@pytest.fixture(scope="module")
+def finished(scene, tmp_path_factory) -> Path:
+    """A folder with a finished, uninterrupted P1 run."""
+    out = tmp_path_factory.mktemp("finished") / "p1"
+    _ok(run(dsm_cmd(scene.views, scene.truth_dsm, out, *P1)))
+    m = metrics(out)["timings"]["chunks"]
+    assert m == {"chunks_total": TOTAL, "chunks_reused": 0, "chunks_computed": TOTAL}
+    assert np.isfinite(heights(out)[0]).mean() > 0.8
+    return out
+
+
+def copy_of(finished: Path, tmp_path: Path) -> Path:
+    out = tmp_path / "p1"
+    shutil.copytree(finished, out)
+    return out
+
+
+# ------------------------------------------------------------------ 4. kill and resume
+def test_killed_run_resumes_its_finished_chunks(scene, finished, tmp_path):
+    """SIGKILL a run once >= 3 of its 36 chunks are done; the same command
+    then computes only the missing chunks (metrics say how many it reused)
+    and gives exactly the DSM of an uninterrupted run."""
+    out = tmp_path / "killed"
+    cmd = dsm_cmd(scene.views, scene.truth_dsm, out, *P1)
+    partial = out / "dsm.zarr.partial"
+    with open(tmp_path / "first.log", "w") as log:
+        p = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        try:
+            deadline = time.monotonic() + 180
+            while True:
+                n = done_count(partial)
+                if n is not None and n >= 3:
+                    break
+                if p.poll() is not None:
+                    pytest.fail(f"the run ended (rc {p.returncode}) before 3 chunks were seen done:\n"
+                                + (tmp_path / "first.log").read_text()[-3000:])
+                if time.monotonic() > deadline:
+                    pytest.fail("no 3 chunks done within 180 s")
+                time.sleep(0.05)
+            os.killpg(p.pid, signal.SIGKILL)
+        finally:
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait(timeout=30)
+    assert p.returncode == -signal.SIGKILL
+    # still partial, and nothing claims a finished run
+    assert partial.exists() and not (out / "dsm.zarr").exists()
+    assert not (out / "metrics.json").exists() and not (out / "recipe.resolved.yaml").exists()
+    k = done_count(partial)
+    assert k is not None and 3 <= k < TOTAL, k
+    # the same command again (the dead run's lock file is stale and taken over)
+    r = run(cmd)
+    _ok(r)
+    assert not partial.exists() and (out / "dsm.zarr").exists()
+    chunks = metrics(out)["timings"]["chunks"]
+    assert chunks == {"chunks_total": TOTAL, "chunks_reused": k, "chunks_computed": TOTAL - k}, chunks
+    assert f"reused {k} of {TOTAL} chunks" in r.stdout
+    h, c = heights(out)
+    h_ref, c_ref = heights(finished)
+    np.testing.assert_array_equal(h, h_ref)
+    np.testing.assert_array_equal(c, c_ref)
+    assert recipe(out) == {**recipe(finished), "name": "killed"}
+
+
+# ------------------------------------------------------------------ 5. changed parameter
+def test_changed_parameter_is_refused_until_overwrite(scene, finished, tmp_path):
+    """A rerun into a finished folder with another height range stops with
+    one line naming the field and --overwrite, leaving the products as they
+    were; with --overwrite it recomputes every chunk."""
+    out = copy_of(finished, tmp_path)
+    before = products(out)
+    fp = store_fingerprint(out / "dsm.zarr")
+    p2 = (*P1, "--height-range", "295", "365")
+    t0 = time.monotonic()
+    line = error_line(run(dsm_cmd(scene.views, scene.truth_dsm, out, *p2)))
+    assert "height_range" in line and "--overwrite" in line, line
+    assert str(out) in line, line
+    assert products(out) == before
+    assert store_fingerprint(out / "dsm.zarr") == fp
+    assert not (out / "dsm.zarr.partial").exists() and not (out / ".tiledsm.lock").exists()
+    refused_s = time.monotonic() - t0
+
+    r = run(dsm_cmd(scene.views, scene.truth_dsm, out, *p2, "--overwrite"))
+    _ok(r)
+    chunks = metrics(out)["timings"]["chunks"]
+    assert chunks == {"chunks_total": TOTAL, "chunks_reused": 0, "chunks_computed": TOTAL}, chunks
+    assert recipe(out)["match"]["height_range"] == [295.0, 365.0]
+    assert metrics(out)["report"]["height_range_m"] == [295.0, 365.0]
+    assert store_fingerprint(out / "dsm.zarr")["height_range"] == [295.0, 365.0]
+    assert refused_s < 60
+
+
+# ------------------------------------------------------------------ 6. replaced input
+def test_replaced_input_is_refused(scene, tmp_path):
+    """An input image rewritten in place (a 20 x 20 pixel patch changed,
+    same name, RPCs kept) after a finished run: the rerun stops with one
+    line naming the file."""
+    import rasterio
+    from rasterio.windows import Window
+
+    inputs = tmp_path / "inputs"
+    inputs.mkdir()
+    views = [Path(shutil.copy2(v, inputs / Path(v).name)) for v in scene.views]
+    out = tmp_path / "run"
+    # one chunk and a given height range: the quickest complete run
+    cmd = dsm_cmd(views, scene.truth_dsm, out, "--chunk", "384", "--levels", "2", "--height-range", "295", "365")
+    _ok(run(cmd))
+    before = products(out)
+    with rasterio.open(views[1], "r+") as f:
+        w = Window(150, 150, 20, 20)
+        patch = f.read(1, window=w)
+        f.write((patch // 2 + 7).astype(patch.dtype), 1, window=w)
+    with rasterio.open(views[1]) as f:
+        assert f.rpcs is not None
+    line = error_line(run(cmd))
+    assert str(views[1]) in line or views[1].name in line, line
+    assert "content changed" in line and "--overwrite" in line, line
+    assert str(views[0]) not in line.replace(str(views[1]), ""), f"the unchanged view is named: {line}"
+    assert products(out) == before
+
+
+# ------------------------------------------------------------------ 7. interrupted before the store
+def test_failed_run_with_other_parameters_never_passes_off_the_old_dsm(scene, finished, tmp_path):
+    """Issue reproduction: a finished P1 folder; P2 (--levels 1) dies before
+    computing anything (no scheduler at tcp://127.0.0.1:9); P2 run normally
+    then must not hand back P1's DSM as its own: it is refused naming
+    ``levels`` (or recomputed). At no point do recipe.resolved.yaml /
+    metrics.json claim P2 while the store holds P1."""
+    out = copy_of(finished, tmp_path)
+    before = products(out)
+    p2 = ("--chunk", "64", "--levels", "1")
+    r = run(
+        dsm_cmd(scene.views, scene.truth_dsm, out, *p2, scheduler="tcp://127.0.0.1:9"),
+        DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT="3s",
+    )
+    assert r.returncode != 0, r.stdout[-2000:]
+    assert products(out) == before  # recipe still says levels 2, like the store
+    assert recipe(out)["match"]["levels"] == 2
+    assert store_fingerprint(out / "dsm.zarr")["levels"] == 2
+    assert not (out / ".tiledsm.lock").exists()
+
+    r = run(dsm_cmd(scene.views, scene.truth_dsm, out, *p2))
+    if r.returncode != 0:
+        line = error_line(r)
+        assert "levels" in line and "--overwrite" in line, line
+        assert products(out) == before
+    else:  # recomputed: then everything says P2
+        assert metrics(out)["timings"]["chunks"]["chunks_reused"] == 0
+    assert recipe(out)["match"]["levels"] == store_fingerprint(out / "dsm.zarr")["levels"]
+
+
+# ------------------------------------------------------------------ 8. concurrent run
+def test_concurrent_run_into_the_same_folder_is_refused(scene, finished, tmp_path):
+    """While a run holds ``DIR/.tiledsm.lock``, a second run into DIR (other
+    height range) stops at once naming the folder; the first completes."""
+    out = tmp_path / "busy"
+    with open(tmp_path / "first.log", "w") as log:
+        first = subprocess.Popen(
+            dsm_cmd(scene.views, scene.truth_dsm, out, *P1), stdout=log, stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        try:
+            deadline = time.monotonic() + 120
+            while not (out / ".tiledsm.lock").exists():
+                assert first.poll() is None, "the first run ended before taking the lock"
+                assert time.monotonic() < deadline, "no lock file within 120 s"
+                time.sleep(0.05)
+            t0 = time.monotonic()
+            second = run(dsm_cmd(scene.views, scene.truth_dsm, out, *P1, "--height-range", "295", "365"), timeout=60)
+            elapsed = time.monotonic() - t0
+            first_alive = first.poll() is None
+            first.wait(timeout=240)
+        finally:
+            if first.poll() is None:
+                os.killpg(first.pid, signal.SIGKILL)
+                first.wait(timeout=30)
+    line = error_line(second)
+    assert first_alive, f"the first run ended before the second was refused ({line})"
+    assert "another" in line and str(out) in line, line
+    assert elapsed < 15, f"the second run took {elapsed:.1f} s to stop"
+    assert first.returncode == 0, (tmp_path / "first.log").read_text()[-3000:]
+    assert metrics(out)["timings"]["chunks"]["chunks_computed"] == TOTAL
+    np.testing.assert_array_equal(heights(out)[0], heights(finished)[0])
+    assert not (out / ".tiledsm.lock").exists()
