@@ -80,8 +80,9 @@ SAMPLE_BYTES = 1 << 20
 #: number of evenly spaced interior blocks sampled besides the first and last
 SAMPLE_COUNT = 16
 #: keys that :func:`differences` (hence :func:`check_resume`) ignores at any
-#: depth: an input's modification time is logged but does not block resume
-IGNORED_KEYS: frozenset[str] = frozenset({"mtime_ns"})
+#: depth: an input's modification time and path are logged but do not block
+#: resume (a run folder copied or inputs moved keep their content hash)
+IGNORED_KEYS: frozenset[str] = frozenset({"mtime_ns", "path"})
 #: name of the lock file inside an output folder
 LOCK_NAME = ".tiledsm.lock"
 
