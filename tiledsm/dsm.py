@@ -432,23 +432,18 @@ def _windows(chunks: tuple[int, ...], index: int, halo: int) -> tuple[int, int, 
     return start, stop, max(0, start - halo), min(sum(chunks), stop + halo)
 
 
-def _match_task(search, views, geom, chunks, halo, h_range, params, block_id=None) -> np.ndarray:
-    """One chunk of a level: match it plus its halo, return the chunk."""
+def _match_task(search, views, geom, chunks, halo, h_range, params, coarsest: bool, block_id=None) -> np.ndarray:
+    """One chunk of a level: match it plus its halo, return the chunk.
+    ``search`` is the chunk's search band plus halo, or at the coarsest
+    level a placeholder block (the whole height range is searched)."""
     r0, r1, hr0, hr1 = _windows(chunks[0], block_id[-2], halo)
     c0, c1, hc0, hc1 = _windows(chunks[1], block_id[-1], halo)
-    if search is not None and search.ndim == 3 and search.shape[0] == 3:
-        if search.shape[1:] != (hr1 - hr0, hc1 - hc0):
-            raise MatchingError(f"internal: search block {search.shape} for cells {(hr0, hr1, hc0, hc1)}")
-    else:
-        search = None  # the coarsest level: a placeholder block
+    if coarsest:
+        search = None
+    elif search.shape[1:] != (hr1 - hr0, hc1 - hc0):
+        raise MatchingError(f"internal: search block {search.shape} for cells {(hr0, hr1, hc0, hc1)}")
     res = match_cells(views, geom, (hr0, hr1, hc0, hc1), search, h_range, params)
     return res[:, r0 - hr0 : r1 - hr0, c0 - hc0 : c1 - hc0]
-
-
-def _search_block(coarse, depth, margin, h_range, search_params) -> np.ndarray:
-    from tiledsm.match.pyramid import search_from_coarse
-
-    return search_from_coarse(coarse, depth, margin, h_range, search_params)
 
 
 def _overlap(x: da.Array, depth: dict[int, int]) -> da.Array:
@@ -467,7 +462,7 @@ def search_array(coarse: da.Array, fine: LevelGeometry, chunks, h_range, params:
     (NaN beyond the grid), maps onto exactly one finer chunk: one
     ``map_blocks`` over ``dask.array.overlap``, exact in any chunking.
     """
-    from tiledsm.match.pyramid import search_halo
+    from tiledsm.match.pyramid import search_from_coarse, search_halo
 
     g = fine.grid
     depth = search_halo(params.search)
@@ -487,16 +482,10 @@ def search_array(coarse: da.Array, fine: LevelGeometry, chunks, h_range, params:
     grown = _overlap(padded, {0: depth, 1: depth})
     out_chunks = ((3,), tuple(2 * n for n in c.chunks[0]), tuple(2 * n for n in c.chunks[1]))
     up = da.map_blocks(
-        _search_block, grown, depth, params.refine_steps * fine.step, tuple(h_range), params.search,
+        search_from_coarse, grown, depth, params.refine_steps * fine.step, tuple(h_range), params.search,
         chunks=out_chunks, new_axis=0, dtype=np.float32, name=f"search-L{fine.level}",
     )
     return up[:, : g.height, : g.width].rechunk(((3,), *chunks))
-
-
-def _despeckle_block(height: np.ndarray, max_diff: float, min_size: int) -> np.ndarray:
-    from tiledsm.match.sgm import remove_speckles
-
-    return remove_speckles(height, max_diff, min_size)
 
 
 def despeckle(height: da.Array, geom: LevelGeometry, params: DSMParams) -> da.Array:
@@ -508,6 +497,8 @@ def despeckle(height: da.Array, geom: LevelGeometry, params: DSMParams) -> da.Ar
     smaller than that lies entirely in a chunk's halo, and one that reaches
     the halo's edge has at least that many cells, so the result is exact in
     any chunking."""
+    from tiledsm.match.sgm import remove_speckles
+
     size = int(params.match.speckle_size)
     if size <= 1:
         return height
@@ -516,7 +507,7 @@ def despeckle(height: da.Array, geom: LevelGeometry, params: DSMParams) -> da.Ar
     short = {ax: -1 for ax in (0, 1) if height.shape[ax] <= size}
     depth = {ax: (0 if ax in short else size) for ax in (0, 1)}
     out = da.map_overlap(
-        _despeckle_block, height.rechunk(short) if short else height, depth=depth, boundary="none", trim=True,
+        remove_speckles, height.rechunk(short) if short else height, depth=depth, boundary="none", trim=True,
         dtype=np.float32,
         max_diff=float(params.match.speckle_steps * geom.step), min_size=size,
     )
@@ -530,12 +521,13 @@ def level_array(views, geom: LevelGeometry, chunks, h_range, params: DSMParams, 
     halo = params.halo()
     out_chunks = ((2,), *chunks)
     name = f"match-L{geom.level}"
-    if search is None:
+    coarsest = search is None
+    if coarsest:
         search = da.zeros((1, *geom.grid.shape), chunks=((1,), *chunks), dtype=np.uint8)
     else:
         search = _overlap(search, {1: halo, 2: halo})
     matched = da.map_blocks(
-        _match_task, search, views, geom, chunks, halo, tuple(h_range), params,
+        _match_task, search, views, geom, chunks, halo, tuple(h_range), params, coarsest,
         chunks=out_chunks, dtype=np.float32, name=name,
     )
     return da.stack([despeckle(matched[0], geom, params), matched[1]])

@@ -773,41 +773,36 @@ def create_store(
     store = ChunkStore(str(final), tuple(var_dtypes), tuple(int(s) for s in shape), (int(chunk[0]), int(chunk[1])))
     partial = store.partial_path
 
-    def compatible(p: Path) -> bool:
-        try:
-            with xr.open_zarr(p, consolidated=False, zarr_format=3) as ds:
-                return _layout(ds.attrs) == layout and _read_progress(p) is not None
-        except Exception:  # any unreadable store is simply not reusable
-            return False
-
     fingerprint = (attrs or {}).get("fingerprint")
 
-    def same_run(p: Path) -> None:
-        # a store that carries a fingerprint is resumed only by the same run
-        if fingerprint is None:
-            return
-        from tiledsm.provenance import check_resume
-
+    def reusable(p: Path) -> bool:
+        """Whether the store at ``p`` can be resumed: same layout; and, when
+        this run has a fingerprint, the same fingerprint (else the run stops
+        naming what changed)."""
         try:
             with xr.open_zarr(p, consolidated=False, zarr_format=3) as ds:
-                stored = ds.attrs.get("fingerprint")
-        except Exception as exc:  # unreadable: cannot be the same run
-            raise TiledsmError(f"{final}: an unreadable store is in the way ({exc}); rerun with --overwrite") from exc
-        stored = json.loads(stored) if isinstance(stored, str) else stored
-        check_resume(stored if stored is not None else {}, json.loads(fingerprint), str(final))
+                stored_attrs = dict(ds.attrs)
+        except Exception as exc:  # an unreadable store is not reusable
+            if fingerprint is not None:
+                raise TiledsmError(f"{final}: an unreadable store is in the way ({exc}); rerun with --overwrite") from exc
+            return False
+        if fingerprint is not None:
+            from tiledsm.provenance import check_resume
+
+            stored = stored_attrs.get("fingerprint")
+            stored = json.loads(stored) if isinstance(stored, str) else stored
+            check_resume(stored if stored is not None else {}, json.loads(fingerprint), str(final))
+        return _layout(stored_attrs) == layout and _read_progress(p) is not None
 
     if overwrite:
         _remove(partial)
         _remove(final)
     elif final.exists():
-        same_run(final)
-        if compatible(final):
+        if reusable(final):
             return store
         raise TiledsmError(f"{final}: exists with another layout; rerun with --overwrite to replace it")
     if partial.exists():
-        if fingerprint is not None:
-            same_run(partial)
-        if compatible(partial):
+        if reusable(partial):
             return store
         _remove(partial)
 

@@ -173,18 +173,17 @@ def height_step(
     step_px = params.step_px if isinstance(params, SGVLLParams) else float(params)
     if len(rpcs) < 2:
         raise MatchingError(f"height_step needs at least two cameras, got {len(rpcs)}")
-    d = []
-    for rpc in rpcs:
-        r0, c0 = rpc.project(lon, lat, h)
-        r1, c1 = rpc.project(lon, lat, h + 1.0)
-        d.append((float(r1 - r0), float(c1 - c0)))
-    best = 0.0
-    for i in range(len(d)):
-        for j in range(i + 1, len(d)):
-            best = max(best, math.hypot(d[i][0] - d[j][0], d[i][1] - d[j][1]))
+    best = float(_parallax(rpcs, lon, lat, h).max())
     if not best > 1e-9:
         raise MatchingError("the views have no parallax (identical viewing directions): heights cannot be matched")
     return step_px / best
+
+
+def _parallax(rpcs: Sequence[RPC], lon: float, lat: float, h: float) -> np.ndarray:
+    """``(nv, nv)`` parallax (pixels per metre of height) between every two
+    views at ground point ``(lon, lat, h)``."""
+    d = np.array([np.subtract(rpc.project(lon, lat, h + 1.0), rpc.project(lon, lat, h)) for rpc in rpcs], np.float64)
+    return np.hypot(d[:, None, 0] - d[None, :, 0], d[:, None, 1] - d[None, :, 1])
 
 
 # ------------------------------------------------------------ projection maps
@@ -246,23 +245,25 @@ def _sample_view(img, lat_r, lat_c, stride, k0, dh, href, offset, gi0, gj0, n0i,
             elif t0 > nh - 2:
                 t0 = nh - 2
                 ft = tt - (k0 + t0)
-            w00 = (1 - fy) * (1 - fx)
-            w01 = (1 - fy) * fx
-            w10 = fy * (1 - fx)
-            w11 = fy * fx
-            a = w00 * lat_r[t0, i0, j0] + w01 * lat_r[t0, i0, j0 + 1] + w10 * lat_r[t0, i0 + 1, j0] + w11 * lat_r[t0, i0 + 1, j0 + 1]
-            b = (
-                w00 * lat_r[t0 + 1, i0, j0] + w01 * lat_r[t0 + 1, i0, j0 + 1]
-                + w10 * lat_r[t0 + 1, i0 + 1, j0] + w11 * lat_r[t0 + 1, i0 + 1, j0 + 1]
-            )
-            y = a + ft * (b - a) - win_r
-            a = w00 * lat_c[t0, i0, j0] + w01 * lat_c[t0, i0, j0 + 1] + w10 * lat_c[t0, i0 + 1, j0] + w11 * lat_c[t0, i0 + 1, j0 + 1]
-            b = (
-                w00 * lat_c[t0 + 1, i0, j0] + w01 * lat_c[t0 + 1, i0, j0 + 1]
-                + w10 * lat_c[t0 + 1, i0 + 1, j0] + w11 * lat_c[t0 + 1, i0 + 1, j0 + 1]
-            )
-            x = a + ft * (b - a) - win_c
+            y = _trilinear(lat_r, t0, i0, j0, ft, fy, fx) - win_r
+            x = _trilinear(lat_c, t0, i0, j0, ft, fy, fx) - win_c
             out[i - r0, j - c0] = _interpolate(img, y, x, cubic, h, w)
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def _trilinear(lat, t0, i0, j0, ft, fy, fx):
+    """Trilinear interpolation of ``lat[t, i, j]`` at ``(t0 + ft, i0 + fy,
+    j0 + fx)``: bilinear on the two height planes, then linear in height."""
+    w00 = (1 - fy) * (1 - fx)
+    w01 = (1 - fy) * fx
+    w10 = fy * (1 - fx)
+    w11 = fy * fx
+    a = w00 * lat[t0, i0, j0] + w01 * lat[t0, i0, j0 + 1] + w10 * lat[t0, i0 + 1, j0] + w11 * lat[t0, i0 + 1, j0 + 1]
+    b = (
+        w00 * lat[t0 + 1, i0, j0] + w01 * lat[t0 + 1, i0, j0 + 1]
+        + w10 * lat[t0 + 1, i0 + 1, j0] + w11 * lat[t0 + 1, i0 + 1, j0 + 1]
+    )
+    return a + ft * (b - a)
 
 
 @nb.njit(nogil=True, cache=True, inline="always")
@@ -305,30 +306,12 @@ def _scatter(cost, label, base, nvalid, r0, c0, vol):
                 vol[i, j, k] = cost[a, b]
 
 
-def _pair_weights(lat_r: np.ndarray, lat_c: np.ndarray, dh: float) -> np.ndarray:
-    """``(nv, nv)`` weights of the view pairs: squared parallax per metre of
-    height (pixels²/m²) at the middle of the block, from the projection
-    lattice. A pair's height precision grows with its parallax, so this is
-    an inverse-variance weighting of the pairs' evidence."""
-    gy, gx = lat_r.shape[2] // 2, lat_r.shape[3] // 2
-    dr = (lat_r[:, 1, gy, gx] - lat_r[:, 0, gy, gx]) / dh
-    dc = (lat_c[:, 1, gy, gx] - lat_c[:, 0, gy, gx]) / dh
-    return np.hypot(dr[:, None] - dr[None, :], dc[:, None] - dc[None, :]) ** 2
-
-
 def pair_weights(rpcs: Sequence[RPC], lon: float, lat: float, h: float) -> np.ndarray:
     """``(nv, nv)`` squared parallax per metre of height (pixels²/m²) of
     every view pair at ground point ``(lon, lat, h)`` (degrees, ellipsoidal
     metres): the inverse-variance weights of :func:`match_block`'s
-    multi-view cost."""
-    d = []
-    for rpc in rpcs:
-        r0, c0 = rpc.project(lon, lat, h)
-        r1, c1 = rpc.project(lon, lat, h + 1.0)
-        d.append((float(r1 - r0), float(c1 - c0)))
-    dr = np.array([a for a, _ in d])
-    dc = np.array([b for _, b in d])
-    return (np.hypot(dr[:, None] - dr[None, :], dc[:, None] - dc[None, :]) ** 2).astype(np.float32)
+    multi-view cost (a pair's height precision grows with its parallax)."""
+    return (_parallax(rpcs, lon, lat, h) ** 2).astype(np.float32)
 
 
 def _as_grid(v, shape, name) -> np.ndarray:
@@ -540,7 +523,7 @@ def match_block(
     elif pair_weights is not None:
         pair_w = np.asarray(pair_weights, np.float32)
     else:
-        pair_w = _pair_weights(lat_r, lat_c, dh)
+        pair_w = (_parallax(rpcs, float(lon.mean()), float(lat.mean()), (h0 + h1) / 2) ** 2).astype(np.float32)
     t_start = time.perf_counter()
     half = params.window // 2
     vol = np.full((ny, nx, nd), _MASKED_COST, np.float32)
