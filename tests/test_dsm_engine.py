@@ -183,7 +183,7 @@ def _roof(scene, height: np.ndarray) -> np.ndarray:
     return height[r0 + 2 : r1 - 2, c0 + 2 : c1 - 2]  # the roof eroded by 2 cells
 
 
-def _check_roof(scene, height: np.ndarray, report: dict) -> None:
+def _check_roof(scene, height: np.ndarray, report: dict, min_completeness: float = 0.9) -> None:
     roof = _roof(scene, height)
     completeness = float(np.isfinite(roof).mean())
     median = float(np.nanmedian(roof)) if np.isfinite(roof).any() else float("nan")
@@ -191,16 +191,10 @@ def _check_roof(scene, height: np.ndarray, report: dict) -> None:
         f"roof {scene.tower.roof_height:.2f} m, DSM median {median:.2f} m, "
         f"completeness {completeness:.3f}, height range {report['height_range_m']}"
     )
-    assert completeness >= 0.9, f"hole in the roof: {detail}"
+    assert completeness >= min_completeness, f"hole in the roof: {detail}"
     assert abs(median - scene.tower.roof_height) <= 1.0, detail
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the tie-point height range [300.05, 360.37] m stops 39 m below the "
-    "65 m tower's roof (399.39 m), so the roof is outside the search: roof-interior completeness "
-    "0.125, median 322.71 m (-76.7 m); default params (auto levels = 1), same at chunk 128 and 384",
-)
 def test_tall_tower_roof_with_default_parameters(tower_scene):
     """A 65 m tower of 16 m side on a 384 px scene, default parameters
     (height range from tie points): on the roof interior (the truth window
@@ -209,6 +203,17 @@ def test_tall_tower_roof_with_default_parameters(tower_scene):
     grid = GroundGrid.like(tower_scene.truth_dsm, chunk=SIZE)
     height, _, _, report = _dsm(tower_scene.views, grid, DSMParams(chunk=SIZE))
     _check_roof(tower_scene, height, report)
+
+
+def test_tall_tower_roof_through_a_three_level_pyramid(tower_scene):
+    """The same tower through 3 pyramid levels at chunks of 100: the
+    coarsest level (cells 4x larger: the tower is 8 x 8 cells there, less
+    than a speckle of the finest level) must keep it, and the finer levels
+    must follow it up. Measured: median +0.04 m, roof-interior completeness
+    0.838 (the pyramid's band blurs the roof edges; 1.0 with one level)."""
+    grid = GroundGrid.like(tower_scene.truth_dsm, chunk=100)
+    height, _, _, report = _dsm(tower_scene.views, grid, DSMParams(chunk=100, levels=3))
+    _check_roof(tower_scene, height, report, min_completeness=0.82)
 
 
 def test_tall_tower_roof_with_a_covering_height_range(tower_scene):

@@ -185,8 +185,11 @@ def scene_height_range(views: Sequence[View], params: DSMParams) -> tuple[tuple[
     """Height range of the scene and relatively corrected views, from tie points.
 
     Tie points are matched on overviews (at most ~1500 px a side), triangulated
-    with the RPCs; the range is their 1st-99th percentile widened by
-    ``params.height_margin``. With ``relative_correction`` the RPCs of views
+    with the RPCs; the range runs from the lowest to the highest tie point
+    that its neighbours confirm, widened by ``params.height_margin`` and
+    kept inside the RPCs' validity range
+    (:func:`~tiledsm.match.tiepoints.height_range_from_tiepoints`: a tower's
+    few roof points count, a lone mismatch does not). With ``relative_correction`` the RPCs of views
     2.. are translated in image space to remove the mean reprojection
     residual (the relative pointing error).
 
@@ -490,8 +493,8 @@ def search_array(coarse: da.Array, fine: LevelGeometry, chunks, h_range, params:
 
 def despeckle(height: da.Array, geom: LevelGeometry, params: DSMParams) -> da.Array:
     """``height`` without its connected components of fewer than
-    ``params.match.speckle_size`` cells (4-neighbours within
-    ``speckle_steps`` height steps are connected): isolated blunders.
+    ``params.match.speckle_size / 4**level`` cells (4-neighbours are
+    connected when no steeper than ``speckle_slope``): isolated blunders.
 
     One ``map_overlap`` with a halo of ``speckle_size`` cells: a component
     smaller than that lies entirely in a chunk's halo, and one that reaches
@@ -499,7 +502,9 @@ def despeckle(height: da.Array, geom: LevelGeometry, params: DSMParams) -> da.Ar
     any chunking."""
     from tiledsm.match.sgm import remove_speckles
 
-    size = int(params.match.speckle_size)
+    # the same ground area at every level: a coarse cell is 4**level cells
+    # (a 16 m tower is 64 cells at level 2, a speckle at level 0)
+    size = int(params.match.speckle_size) // 4**geom.level
     if size <= 1:
         return height
     chunks = height.chunks
@@ -509,7 +514,7 @@ def despeckle(height: da.Array, geom: LevelGeometry, params: DSMParams) -> da.Ar
     out = da.map_overlap(
         remove_speckles, height.rechunk(short) if short else height, depth=depth, boundary="none", trim=True,
         dtype=np.float32,
-        max_diff=float(params.match.speckle_steps * geom.step), min_size=size,
+        max_diff=params.match.speckle_max_diff(geom.grid.resolution, geom.step), min_size=size,
     )
     return out.rechunk(chunks)
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from tiledsm.geometry import RPC
-from tiledsm.match.tiepoints import height_range_from_tiepoints, match_tiepoints, relative_correction
+from tiledsm.match.tiepoints import height_range_from_tiepoints, match_tiepoints, relative_correction, supported
 from tiledsm.match.triangulate import triangulate
 
 
@@ -56,7 +56,7 @@ def test_tiepoints_height_range_and_correction_s2p(shared_data):
     p1, p2 = match_tiepoints(a, b)
     assert len(p1) > 500
     lo, hi = height_range_from_tiepoints(r1, r2, p1, p2, margin=0.0)
-    # s2p's DSM of this pair spans 2270-2376 m (measured here: 2270.5-2373.1)
+    # s2p's DSM of this pair spans 2270-2376 m (supported tie-point extremes measured: 2268.6-2375.7)
     assert 2255 < lo < 2285 and 2360 < hi < 2390
     info = {}
     drow, dcol = relative_correction(r1, r2, p1, p2, details=info)
@@ -65,3 +65,39 @@ def test_tiepoints_height_range_and_correction_s2p(shared_data):
     assert info["residual_after_px"] < 0.5 * info["residual_before_px"]
     r2c = r2.replace(line_off=r2.line_off + drow, samp_off=r2.samp_off + dcol)
     assert np.median(triangulate(r1, r2c, p1, p2)[3]) < np.median(triangulate(r1, r2, p1, p2)[3])
+
+
+def test_supported_keeps_consistent_groups_and_drops_lone_heights():
+    rng = np.random.default_rng(2)
+    ground = np.column_stack([rng.uniform(0, 400, (300, 2))])
+    h_ground = 300.0 + 0.02 * ground[:, 0] + rng.normal(0, 0.5, 300)
+    roof = np.array([[200.0, 200.0], [212.0, 200.0], [200.0, 212.0], [212.0, 212.0]])  # a 12 m roof, 4 corners
+    lone = np.array([[50.0, 50.0], [350.0, 120.0]])  # mismatches: heights nobody near confirms
+    xy = np.vstack([ground, roof, lone])
+    h = np.concatenate([h_ground, [365.0, 365.1, 364.9, 365.0], [600.0, 100.0]])
+    keep = supported(xy, h, radius=50.0, tol=5.0, min_support=2)
+    assert keep[300:304].all()  # the roof survives: 3 consistent neighbours each
+    assert not keep[304:].any()  # the lone heights do not
+    assert keep[:300].mean() > 0.98
+    # one corner alone is not a roof
+    assert not supported(xy[[*range(300), 300, 304]], h[[*range(300), 300, 304]], 50.0, 5.0, 2)[300]
+
+
+def test_height_range_reaches_a_roof_that_percentiles_would_drop(synthetic_scene):
+    """400 ground tie points at 80..130 m, 3 on a roof at 160 m (0.7 % of
+    them, above the 99th percentile): the range reaches the roof; a lone
+    mismatch at 250 m does not stretch it."""
+    r1, r2 = synthetic_scene.rpcs
+    rng = np.random.default_rng(3)
+    rows, cols = rng.uniform(20, 200, 400), rng.uniform(40, 220, 400)
+    h = rng.uniform(80, 130, 400)
+    rows = np.concatenate([rows, [100, 104, 100], [60]])
+    cols = np.concatenate([cols, [100, 100, 104], [60]])
+    h = np.concatenate([h, [160.0] * 3, [250.0]])
+    assert np.percentile(h, 99) < 131
+    lon, lat = r1.localize(rows, cols, h)
+    p1 = np.stack(r1.project(lon, lat, h), -1)
+    p2 = np.stack(r2.project(lon, lat, h), -1)
+    lo, hi = height_range_from_tiepoints(r1, r2, p1, p2, margin=0.0)
+    assert hi == pytest.approx(160.0, abs=1e-3)
+    assert lo == pytest.approx(h[:400].min(), abs=1e-3)

@@ -15,7 +15,7 @@ from tiledsm.errors import MatchingError
 from tiledsm.geometry import RPC
 from tiledsm.match.triangulate import triangulate
 
-__all__ = ["to_uint8", "match_tiepoints", "height_range_from_tiepoints", "relative_correction"]
+__all__ = ["to_uint8", "match_tiepoints", "supported", "height_range_from_tiepoints", "relative_correction"]
 
 
 def to_uint8(img: np.ndarray, percentiles: tuple[float, float] = (1.0, 99.0)) -> tuple[np.ndarray, np.ndarray]:
@@ -97,21 +97,62 @@ def match_tiepoints(
     return p1[keep], p2[keep]
 
 
+def supported(xy: np.ndarray, h: np.ndarray, radius: float, tol: float, min_support: int) -> np.ndarray:
+    """Points whose height is confirmed by neighbours.
+
+    A point is supported when at least ``min_support`` other points lie
+    within ``radius`` of it (ground metres) with a height within ``tol``
+    metres of its own. A roof, a peak or a cliff top carries several
+    consistent tie points; a mismatch along the epipolar line is a lone
+    height.
+
+    Parameters
+    ----------
+    xy : numpy.ndarray
+        ``(n, 2)`` ground positions, metres (any local metric frame).
+    h : numpy.ndarray
+        ``(n,)`` heights, metres.
+    radius, tol : float
+        Neighbourhood radius and height tolerance, metres.
+    min_support : int
+        Consistent neighbours needed.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n,)`` bool.
+    """
+    from scipy.spatial import cKDTree
+
+    if len(h) == 0:
+        return np.zeros(0, bool)
+    near = cKDTree(xy).query_ball_point(xy, radius)
+    count = np.array([np.count_nonzero(np.abs(h[n] - h[i]) <= tol) - 1 for i, n in enumerate(near)])
+    return count >= min_support
+
+
 def height_range_from_tiepoints(
     rpc1: RPC,
     rpc2: RPC,
     p1: np.ndarray,
     p2: np.ndarray,
     margin: float = 10.0,
-    percentiles: tuple[float, float] = (1.0, 99.0),
     max_residual: float | None = None,
+    support_radius: float = 50.0,
+    support_tol: float = 5.0,
+    min_support: int = 2,
 ) -> tuple[float, float]:
-    """Scene height range from triangulated tie points.
+    """Scene height range from triangulated tie points: the lowest and the
+    highest *supported* point, widened by ``margin`` metres on both sides
+    and kept inside the RPCs' height validity range.
 
-    Points whose reprojection residual exceeds ``max_residual`` pixels
-    (default: ``max(1, 3 x median residual)``) are dropped; the range is the
-    given percentiles of the remaining heights, widened by ``margin``
-    metres on both sides.
+    Extremes, not percentiles: a tower or a peak is a handful of tie
+    points (a 16 m tower on 0.15 km^2 is 5 of 2000), which any percentile
+    drops, and a search range that stops below a roof cannot find it. Lone
+    mismatches, which percentiles were there to drop, are removed by
+    :func:`supported` instead. Points whose reprojection residual exceeds
+    ``max_residual`` pixels (default: ``max(1, 3 x median residual)``) are
+    dropped first.
 
     Raises
     ------
@@ -122,14 +163,28 @@ def height_range_from_tiepoints(
     p2 = np.asarray(p2, float).reshape(-1, 2)
     if len(p1) < 5:
         raise MatchingError(f"height range: only {len(p1)} tie points (need >= 5)")
-    _, _, h, res = triangulate(rpc1, rpc2, p1, p2)
+    lon, lat, h, res = triangulate(rpc1, rpc2, p1, p2)
     ok = np.isfinite(h) & np.isfinite(res)
     thr = max_residual if max_residual is not None else max(1.0, 3.0 * float(np.median(res[ok])))
     ok &= res <= thr
     if ok.sum() < 5:
         raise MatchingError(f"height range: only {int(ok.sum())} tie points with residual <= {thr:.2f} px")
-    lo, hi = np.percentile(h[ok], percentiles)
-    return float(lo - margin), float(hi + margin)
+    lon, lat, h = lon[ok], lat[ok], h[ok]
+    # a local equirectangular frame is metric enough for a 50 m neighbourhood
+    xy = np.column_stack([(lon - lon.mean()) * 111_320.0 * np.cos(np.radians(lat.mean())), (lat - lat.mean()) * 110_540.0])
+    keep = supported(xy, h, support_radius, support_tol, min_support)
+    if keep.sum() < 5:
+        raise MatchingError(
+            f"height range: only {int(keep.sum())} tie points confirmed by neighbours "
+            f"({min_support} within {support_radius:g} m and {support_tol:g} m in height)"
+        )
+    lo, hi = float(h[keep].min()) - margin, float(h[keep].max()) + margin
+    valid = [(r.height_off - abs(r.height_scale), r.height_off + abs(r.height_scale)) for r in (rpc1, rpc2)]
+    lo, hi = max(lo, *(v[0] for v in valid)), min(hi, *(v[1] for v in valid))
+    if hi <= lo:
+        raise MatchingError(f"height range: tie points at {h[keep].min():.1f}..{h[keep].max():.1f} m lie outside "
+                            "the RPCs' height validity range")
+    return lo, hi
 
 
 def relative_correction(
