@@ -33,6 +33,14 @@ Steps (``pipeline: sr_dsm``), all under the run folder:
    against the synthetic truth on visible ground or the given reference
    DSM when there is one.
 
+The DSMs of one table are compared on the same cells: the accuracy
+statistics of every DSM are computed on the *common* cells, where the
+reference and every compared DSM have a height (:func:`compare_on_common`),
+so a method cannot look better by leaving holes where matching is hard.
+Each DSM's own completeness (its share of the reference's cells) is
+reported beside them, and the common cells' count and share in
+``metrics.json`` (``common``) and under each table.
+
 Conventions
 -----------
 - Heights are metres above the WGS84 ellipsoid; NaN = no height.
@@ -51,6 +59,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -83,6 +92,11 @@ __all__ = [
     "lr_grid",
     "upsample_dsm",
     "image_quality",
+    "common_valid",
+    "scores_on",
+    "own_completeness",
+    "compare_on_common",
+    "common_cells_line",
     "markdown_report",
     "run_sr_dsm",
 ]
@@ -251,16 +265,170 @@ def image_quality(hr: np.ndarray, sr: np.ndarray, *, peak: float, border: int) -
     }
 
 
+def common_valid(*heights: np.ndarray) -> np.ndarray:
+    """Cells where every given DSM has a height.
+
+    Parameters
+    ----------
+    *heights : numpy.ndarray
+        Height grids of the same shape (metres; NaN = no height).
+
+    Returns
+    -------
+    numpy.ndarray
+        bool, True where all ``heights`` are finite.
+
+    Raises
+    ------
+    ValueError
+        No grid given, or grids of different shapes.
+    """
+    if not heights:
+        raise ValueError("common_valid: at least one height grid is required")
+    shape = np.shape(heights[0])
+    ok = np.ones(shape, bool)
+    for h in heights:
+        if np.shape(h) != shape:
+            raise ValueError(f"common_valid: grids of different shapes {shape} and {np.shape(h)}")
+        ok &= np.isfinite(h)
+    return ok
+
+
+def scores_on(height: np.ndarray, reference: np.ndarray, cells: np.ndarray) -> dict:
+    """Statistics of ``height - reference`` on the selected cells only.
+
+    Parameters
+    ----------
+    height, reference : numpy.ndarray
+        Heights on the same grid (metres; NaN = no height).
+    cells : numpy.ndarray
+        bool, the cells to score (e.g. :func:`common_valid`).
+
+    Returns
+    -------
+    dict
+        :func:`tiledsm.compare.stats.difference_statistics` of the selected
+        cells: mean, median, std, rmse, mae, nmad, min, max (metres), mre
+        (dimensionless ratio), count (scored cells with a height in both),
+        cells (selected cells), completeness (count / cells).
+    """
+    from tiledsm.compare.stats import difference_statistics
+
+    sel = np.asarray(cells, bool)
+    h = np.asarray(height, np.float64)[sel]
+    ref = np.asarray(reference, np.float64)[sel]
+    return difference_statistics(h - ref, reference=ref)
+
+
+def own_completeness(height: np.ndarray, evaluated: np.ndarray) -> dict:
+    """Share of the evaluated cells where a DSM has a height.
+
+    Parameters
+    ----------
+    height : numpy.ndarray
+        Heights (metres; NaN = no height).
+    evaluated : numpy.ndarray
+        bool, the cells that count (e.g. where the reference has a height).
+
+    Returns
+    -------
+    dict
+        ``valid`` (cells with a height), ``cells`` (evaluated cells),
+        ``completeness`` (valid / cells, a fraction in [0, 1]; NaN for no
+        evaluated cell).
+    """
+    sel = np.asarray(evaluated, bool)
+    valid = int(np.count_nonzero(np.isfinite(np.asarray(height))[sel]))
+    cells = int(np.count_nonzero(sel))
+    return {"valid": valid, "cells": cells, "completeness": valid / cells if cells else float("nan")}
+
+
+def compare_on_common(heights: Mapping[str, np.ndarray], reference: np.ndarray,
+                      mask: np.ndarray | None = None) -> dict:
+    """Several DSMs against one reference, all scored on the same cells.
+
+    The evaluated cells are those where the reference has a height (and
+    ``mask`` is True); the common cells are the evaluated cells where every
+    DSM of ``heights`` has a height (:func:`common_valid`).
+
+    Parameters
+    ----------
+    heights : mapping of str to numpy.ndarray
+        The compared DSMs by name (metres; NaN = no height), on the
+        reference's grid.
+    reference : numpy.ndarray
+        Reference heights (metres; NaN = no height).
+    mask : numpy.ndarray, optional
+        bool, True = evaluate (e.g. visible ground); default every cell.
+
+    Returns
+    -------
+    dict
+        ``common``: ``count`` (common cells), ``cells`` (evaluated cells),
+        ``fraction`` (count / cells), ``dsms`` (the names compared);
+        ``scores``: per name, :func:`scores_on` the common cells (metres;
+        ``count`` = common cells) with ``valid``, ``cells`` and
+        ``completeness`` replaced by the DSM's own
+        (:func:`own_completeness` on the evaluated cells).
+    """
+    ref = np.asarray(reference)
+    evaluated = np.isfinite(ref)
+    if mask is not None:
+        evaluated &= np.asarray(mask, bool)
+    common = (evaluated & common_valid(*heights.values())) if heights else evaluated
+    n_common, n_eval = int(np.count_nonzero(common)), int(np.count_nonzero(evaluated))
+    scores = {name: {**scores_on(h, ref, common), **own_completeness(h, evaluated)} for name, h in heights.items()}
+    return {
+        "common": {"count": n_common, "cells": n_eval, "fraction": n_common / n_eval if n_eval else float("nan"),
+                   "dsms": list(heights)},
+        "scores": scores,
+    }
+
+
 def _fmt(v, spec: str, scale: float = 1.0) -> str:
     if v is None or not np.isfinite(v):
         return "–"
     return format(v * scale, spec)
 
 
+def common_cells_line(common: dict, reference: str) -> str:
+    """The sentence under a comparison table that says which cells were scored.
+
+    Parameters
+    ----------
+    common : dict
+        ``common`` block of :func:`compare_on_common` (``count``, ``cells``,
+        ``fraction``).
+    reference : str
+        What the reference is, e.g. ``"the HR-pair DSM"``.
+
+    Returns
+    -------
+    str
+        e.g. ``"Scored on 1234 common cells (87.5 % of the 1410 cells of
+        the HR-pair DSM): ..."``.
+    """
+    return (f"Scored on {common['count']} common cells ({_fmt(common['fraction'], '.1f', 100)} % of the "
+            f"{common['cells']} cells of {reference}): where the reference and every DSM of the table have a "
+            f"height. Completeness: each DSM's own share of the {common['cells']} cells.")
+
+
+def _common_lines(metrics: dict, key: str, reference: str) -> list[str]:
+    """:func:`common_cells_line` and a blank line, or nothing for metrics
+    written before common-cell scoring (no ``common`` block)."""
+    common = metrics.get("common", {}).get(key)
+    return [] if common is None else [common_cells_line(common, reference), ""]
+
+
 def markdown_report(metrics: dict) -> str:
     """The run's ``report.md``: Table 1 (image quality) and Table 2 (DSM
     accuracy against the HR-pair DSM), plus Table 3 against the synthetic
-    truth (visible ground) or the given reference DSM when available."""
+    truth (visible ground) or the given reference DSM when available.
+
+    The accuracy columns (metres; MRE in percent) of Tables 2 and 3 are on
+    each table's common cells (``metrics["common"]``, see
+    :func:`compare_on_common`), said in a line under the caption;
+    completeness (percent) is each DSM's own."""
     m = metrics["methods"]
     sr = metrics["sr"]
     lines = [
@@ -281,8 +449,9 @@ def markdown_report(metrics: dict) -> str:
             lines.append(f"| {_LABELS.get(name, name)} | {_fmt(r['image']['psnr_db'], '.2f')} | {_fmt(r['image']['ssim'], '.4f')} |")
     lines += [
         "",
-        "**Table 2.** DSM accuracy against the DSM of the HR pair (all cells where it has a height).",
+        "**Table 2.** DSM accuracy against the DSM of the HR pair.",
         "",
+        *_common_lines(metrics, "vs_hr", "the HR-pair DSM"),
         "| Method | RMSE (m) | MRE (%) | NMAD (m) | Completeness (%) |",
         "|---|---|---|---|---|",
     ]
@@ -300,6 +469,7 @@ def markdown_report(metrics: dict) -> str:
             "",
             f"**Table 3.** DSM accuracy against {title}.",
             "",
+            *_common_lines(metrics, key, "the reference"),
             "| Method | RMSE (m) | MRE (%) | NMAD (m) | Median (m) | Completeness (%) |",
             "|---|---|---|---|---|---|",
         ]
@@ -359,13 +529,22 @@ def _super_resolve_file(lr: Path, out: Path, model: str, sr: SRSpec, cluster: Cl
     return out
 
 
-def _scores(height: xr.DataArray, hr_height: xr.DataArray, refs: dict) -> dict:
-    """Statistics of ``height`` against the HR-pair DSM and the other references."""
-    from tiledsm.pipelines import dsm_metrics
+def _score_tables(hr: np.ndarray, methods: dict[str, np.ndarray], refs: dict) -> tuple[dict, dict]:
+    """Every table's statistics, each on its common cells.
 
-    out = {"vs_hr": dsm_metrics(height, hr_height)}
-    out.update({key: dsm_metrics(height, ref, mask=mask) for key, (ref, mask) in refs.items()})
-    return out
+    ``vs_hr`` compares ``methods`` against the HR-pair DSM ``hr``; each key
+    of ``refs`` (``(reference, mask)``) compares the HR pair and ``methods``
+    against that reference. Returns ``(scores, common)``: ``scores[name][key]``
+    and ``common[key]`` (see :func:`compare_on_common`; heights in metres).
+    """
+    tables = {"vs_hr": compare_on_common(methods, hr)}
+    for key, (ref, mask) in refs.items():
+        tables[key] = compare_on_common({"hr": hr, **methods}, ref, mask)
+    scores: dict[str, dict] = {}
+    for key, table in tables.items():
+        for name, row in table["scores"].items():
+            scores.setdefault(name, {})[key] = row
+    return scores, {key: table["common"] for key, table in tables.items()}
 
 
 def _hr_pair(recipe: SRDSMRecipe, out: Path) -> tuple[list[Path], dict]:
@@ -409,7 +588,9 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
     Returns the metrics written to ``out/metrics.json``: per method, the
     image quality (``image``: PSNR dB, SSIM, per view and mean) and the DSM
     statistics (``vs_hr`` and, when available, ``vs_truth_visible`` or
-    ``vs_reference``; metres), timings in seconds.
+    ``vs_reference``; metres, on each table's common cells, with each DSM's
+    own completeness), the common cells of each table (``common``), timings
+    in seconds.
     """
     from tiledsm.pipelines import _reference_on_grid, _write_json
     from tiledsm.synth.degrade import degrade
@@ -441,12 +622,12 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
         if "truth" in info:
             truth = _reference_on_grid(info["truth"], hr_height)
             visible = _reference_on_grid(info["visible"], hr_height).values > 0.5
-            refs["vs_truth_visible"] = (truth, visible)
+            refs["vs_truth_visible"] = (truth.values, visible)
             metrics["truth"] = str(info["truth"])
         if "reference" in info:
-            refs["vs_reference"] = (_reference_on_grid(info["reference"], hr_height), None)
+            refs["vs_reference"] = (_reference_on_grid(info["reference"], hr_height).values, None)
             metrics["reference"] = str(info["reference"])
-        metrics["hr"] = {"dsm": hr_report, **_scores(hr_height, hr_height, refs)}
+        metrics["hr"] = {"dsm": hr_report}
         # 2. LR pair
         t0 = time.perf_counter()
         lr_views = []
@@ -459,6 +640,7 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
         # 3. methods
         hr_images = [_read_band(v) for v in views]
         methods: dict[str, dict] = {}
+        method_heights: dict[str, np.ndarray] = {}
         for name in sr.models:
             t0 = time.perf_counter()
             folder = out / name
@@ -482,9 +664,13 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
                 }}
                 height, report = _make_dsm(sr_views, grid, recipe, folder, run_cluster, overwrite)
                 row["dsm"] = report
-            row.update(_scores(height, hr_height, refs))
+            method_heights[name] = np.asarray(height.values)
             methods[name] = row
             timings[name] = time.perf_counter() - t0
+    scores, metrics["common"] = _score_tables(np.asarray(hr_height.values), method_heights, refs)
+    metrics["hr"].update(scores.get("hr", {}))
+    for name, row in methods.items():
+        row.update(scores[name])
     metrics["methods"] = methods
     timings["total"] = time.perf_counter() - t_start
     metrics["timings"] = timings
