@@ -19,9 +19,16 @@ of the whole tree (PSS, shared pages split), and the speed-up of 2 workers
 over 1 measured in the same run. Load averages before and after each measurement are recorded:
 on a shared machine other work stretches wall times.
 
+Graph construction (no matching): the lazy DSM of a 4096^2, 8192^2 and
+16384^2 ground grid at chunks of 256 with 3 pyramid levels (the views of a
+small synthetic scene; nothing is computed): seconds to build the dask
+array (``dsm_from_views``), seconds to materialise its task graph (what a
+scheduler does first), the task count and tasks per chunk (linear growth =
+constant tasks per chunk).
+
 Usage::
 
-    nice -n 10 .venv/bin/python benchmarks/dsm.py [--cases s2p synth4096] [--workers 1 2]
+    nice -n 10 .venv/bin/python benchmarks/dsm.py [--cases s2p synth4096] [--workers 1 2] [--graph-sizes 4096 8192 16384]
 
 Writes ``benchmarks/results/dsm.json`` and prints a markdown table.
 """
@@ -88,6 +95,43 @@ def run_case(name: str, workers: int, run_dir: Path, chunk: int, timeout: float)
     return row
 
 
+def graph_rows(run_dir: Path, sizes: list[int], chunk: int = 256, levels: int = 3) -> list[dict]:
+    """Build (not compute) the DSM graph of ``size``^2 grids; see the module docstring."""
+    import time
+
+    import rioxarray
+
+    from tiledsm.dsm import DSMParams, dsm_from_views, open_views
+    from tiledsm.geometry.grid import GroundGrid
+
+    args, _ = _case_synth(run_dir, 256)
+    views = open_views(args[:2])
+    truth = rioxarray.open_rasterio(args[3])
+    x0, _, _, y0 = truth.rio.bounds()
+    rows = []
+    for n in sizes:
+        grid = GroundGrid(crs=truth.rio.crs.to_string(), x0=x0, y0=y0, resolution=abs(truth.rio.resolution()[0]),
+                          width=n, height=n, chunk=chunk)
+        t0 = time.perf_counter()
+        arr = dsm_from_views(views, grid, (300.0, 400.0), DSMParams(chunk=chunk, levels=levels))["height"].data
+        t1 = time.perf_counter()
+        tasks = len(dict(arr.__dask_graph__()))
+        t2 = time.perf_counter()
+        chunks = len(arr.chunks[0]) * len(arr.chunks[1])
+        rows.append({"size": n, "chunk": chunk, "levels": levels, "chunks": chunks, "tasks": tasks,
+                     "tasks_per_chunk": tasks / chunks, "build_s": t1 - t0, "materialise_s": t2 - t1})
+    return rows
+
+
+def format_graph_table(rows: list[dict]) -> str:
+    head = "| grid | chunks | tasks | tasks per chunk | build (s) | materialise (s) |"
+    lines = [head, "|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['size']}² | {r['chunks']} | {r['tasks']} | {r['tasks_per_chunk']:.1f} | "
+                     f"{r['build_s']:.2f} | {r['materialise_s']:.2f} |")
+    return "\n".join(lines)
+
+
 def format_table(rows: list[dict]) -> str:
     head = (
         "| case | workers | cells | wall (s) | match (s) | Mcells/s | speed-up vs 1 | peak per worker (MiB) "
@@ -113,9 +157,11 @@ def format_table(rows: list[dict]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", nargs="+", default=["s2p", "synth4096"], help="s2p and/or synth<N>")
+    ap.add_argument("--cases", nargs="*", default=["s2p", "synth4096"], help="s2p and/or synth<N> (none: graph only)")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--chunk", type=int, default=512)
+    ap.add_argument("--graph-sizes", type=int, nargs="*", default=[4096, 8192, 16384],
+                    help="grid sides whose graph construction is timed (none: skip)")
     ap.add_argument("--run-dir", default=str(REPO / "runs" / "bench_dsm"))
     ap.add_argument("--timeout", type=float, default=3600)
     ap.add_argument("--json", default=str(REPO / "benchmarks" / "results" / "dsm.json"))
@@ -129,12 +175,18 @@ def main(argv: list[str] | None = None) -> int:
             print(format_table(rows[-1:]).splitlines()[-1], flush=True)
     table = format_table(rows)
     print(table)
+    graph = graph_rows(run_dir, args.graph_sizes) if args.graph_sizes else []
+    if graph:
+        print()
+        print(format_graph_table(graph))
     result = {
         "benchmark": "dsm",
         "when": _dt.datetime.now().isoformat(timespec="seconds"),
         "host": {"machine": platform.machine(), "cpus": os.cpu_count(), "python": platform.python_version()},
         "rows": rows,
         "table": table,
+        "graph": graph,
+        "graph_table": format_graph_table(graph) if graph else None,
     }
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(result, indent=1, default=str))

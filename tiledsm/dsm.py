@@ -422,9 +422,12 @@ def level_chunks(n: int, chunk: int, min_size: int) -> tuple[int, ...]:
 
 
 def _min_chunk(params: DSMParams) -> int:
+    """Smallest chunk side a level is matched in: its halo must fit in a
+    neighbour, and so must the coarser cells a task derives its search
+    band from (:func:`coarse_blocks`: half a chunk deep)."""
     from tiledsm.match.pyramid import search_halo
 
-    return max(params.halo(), 2 * search_halo(params.search))
+    return max(params.halo(), 2 * (search_halo(params.search) + params.halo() // 2))
 
 
 def _windows(chunks: tuple[int, ...], index: int, halo: int) -> tuple[int, int, int, int]:
@@ -435,16 +438,28 @@ def _windows(chunks: tuple[int, ...], index: int, halo: int) -> tuple[int, int, 
     return start, stop, max(0, start - halo), min(sum(chunks), stop + halo)
 
 
-def _match_task(search, views, geom, chunks, halo, h_range, params, coarsest: bool, block_id=None) -> np.ndarray:
+def _match_task(coarse, views, geom, chunks, halo, h_range, params, coarsest: bool, block_id=None) -> np.ndarray:
     """One chunk of a level: match it plus its halo, return the chunk.
-    ``search`` is the chunk's search band plus halo, or at the coarsest
-    level a placeholder block (the whole height range is searched)."""
+
+    ``coarse`` is the coarser level's heights under the chunk, grown by
+    ``search_halo + halo / 2`` coarse cells (NaN beyond the grid;
+    :func:`coarse_blocks`): the chunk's search band over its halo is
+    derived here (:func:`~tiledsm.match.pyramid.search_from_coarse`), which
+    spares the graph a second overlapped array. At the coarsest level it
+    is a placeholder (the whole height range is searched)."""
+    from tiledsm.match.pyramid import search_from_coarse, search_halo
+
     r0, r1, hr0, hr1 = _windows(chunks[0], block_id[-2], halo)
     c0, c1, hc0, hc1 = _windows(chunks[1], block_id[-1], halo)
-    if coarsest:
-        search = None
-    elif search.shape[1:] != (hr1 - hr0, hc1 - hc0):
-        raise MatchingError(f"internal: search block {search.shape} for cells {(hr0, hr1, hc0, hc1)}")
+    search = None
+    if not coarsest:
+        depth = search_halo(params.search)
+        # fine cells [r0 - halo, ...) of the band, then the halo clipped to the grid
+        band = search_from_coarse(coarse, depth, params.refine_steps * geom.step, tuple(h_range), params.search)
+        a, b = hr0 - (r0 - halo), hc0 - (c0 - halo)
+        search = band[:, a : a + hr1 - hr0, b : b + hc1 - hc0]
+        if search.shape[1:] != (hr1 - hr0, hc1 - hc0):
+            raise MatchingError(f"internal: search block {search.shape} for cells {(hr0, hr1, hc0, hc1)}")
     res = match_cells(views, geom, (hr0, hr1, hc0, hc1), search, h_range, params)
     return res[:, r0 - hr0 : r1 - hr0, c0 - hc0 : c1 - hc0]
 
@@ -456,19 +471,11 @@ def _overlap(x: da.Array, depth: dict[int, int]) -> da.Array:
     return da.overlap.overlap(x, depth=depth, boundary="none", allow_rechunk=False)
 
 
-def search_array(coarse: da.Array, fine: LevelGeometry, chunks, h_range, params: DSMParams) -> da.Array:
-    """Lazy ``(3, H, W)`` search band (``h_ref, lo, hi``) of the level
-    ``fine``, chunked as ``chunks``, from the coarser level's heights.
-
-    The coarser heights are rechunked to half the finer chunks, so each of
-    their blocks, grown by :func:`~tiledsm.match.pyramid.search_halo` cells
-    (NaN beyond the grid), maps onto exactly one finer chunk: one
-    ``map_blocks`` over ``dask.array.overlap``, exact in any chunking.
-    """
-    from tiledsm.match.pyramid import search_from_coarse, search_halo
-
-    g = fine.grid
-    depth = search_halo(params.search)
+def coarse_blocks(coarse: da.Array, chunks, depth: int) -> da.Array:
+    """The coarser level's heights ``coarse`` as one block per finer chunk
+    of ``chunks``: rechunked to half the finer chunks (coarse cell ``I``
+    covers finer cells ``2I, 2I+1``), each block grown by ``depth`` coarse
+    cells (NaN beyond the grid)."""
     half = tuple(
         tuple(n // 2 for n in ch[:-1]) + (nc - sum(n // 2 for n in ch[:-1]),)
         for ch, nc in zip(chunks, coarse.shape)
@@ -482,60 +489,64 @@ def search_array(coarse: da.Array, fine: LevelGeometry, chunks, h_range, params:
             for ch in c.chunks
         )
     )
-    grown = _overlap(padded, {0: depth, 1: depth})
-    out_chunks = ((3,), tuple(2 * n for n in c.chunks[0]), tuple(2 * n for n in c.chunks[1]))
-    up = da.map_blocks(
-        search_from_coarse, grown, depth, params.refine_steps * fine.step, tuple(h_range), params.search,
-        chunks=out_chunks, new_axis=0, dtype=np.float32, name=f"search-L{fine.level}",
-    )
-    return up[:, : g.height, : g.width].rechunk(((3,), *chunks))
+    return _overlap(padded, {0: depth, 1: depth})
 
 
-def despeckle(height: da.Array, geom: LevelGeometry, params: DSMParams) -> da.Array:
-    """``height`` without its connected components of fewer than
-    ``params.match.speckle_size / 4**level`` cells (4-neighbours are
-    connected when no steeper than ``speckle_slope``): isolated blunders.
+def _despeckle_heights(block: np.ndarray, max_diff: float, min_size: int) -> np.ndarray:
+    from tiledsm.match.sgm import remove_speckles
 
-    One ``map_overlap`` with a halo of ``speckle_size`` cells: a component
+    out = block.copy()
+    out[0] = remove_speckles(block[0], max_diff, min_size)
+    return out
+
+
+def despeckle(matched: da.Array, geom: LevelGeometry, params: DSMParams) -> da.Array:
+    """``matched`` (heights, confidence) without the height components of
+    fewer than ``params.match.speckle_size / 4**level`` cells (4-neighbours
+    are connected when no steeper than ``speckle_slope``): isolated
+    blunders.
+
+    One ``map_overlap`` with a halo of that many cells: a component
     smaller than that lies entirely in a chunk's halo, and one that reaches
     the halo's edge has at least that many cells, so the result is exact in
     any chunking."""
-    from tiledsm.match.sgm import remove_speckles
-
     # the same ground area at every level: a coarse cell is 4**level cells
     # (a 16 m tower is 64 cells at level 2, a speckle at level 0)
     size = int(params.match.speckle_size) // 4**geom.level
     if size <= 1:
-        return height
-    chunks = height.chunks
+        return matched
+    chunks = matched.chunks
     # an axis no longer than the halo is taken whole (dask needs depth < size)
-    short = {ax: -1 for ax in (0, 1) if height.shape[ax] <= size}
-    depth = {ax: (0 if ax in short else size) for ax in (0, 1)}
+    short = {ax: -1 for ax in (1, 2) if matched.shape[ax] <= size}
+    depth = {0: 0, **{ax: (0 if ax in short else size) for ax in (1, 2)}}
     out = da.map_overlap(
-        remove_speckles, height.rechunk(short) if short else height, depth=depth, boundary="none", trim=True,
+        _despeckle_heights, matched.rechunk(short) if short else matched, depth=depth, boundary="none", trim=True,
         dtype=np.float32,
         max_diff=params.match.speckle_max_diff(geom.grid.resolution, geom.step), min_size=size,
     )
+    # map_overlap may have rechunked to fit a halo wider than a chunk
     return out.rechunk(chunks)
 
 
-def level_array(views, geom: LevelGeometry, chunks, h_range, params: DSMParams, search: da.Array | None) -> da.Array:
+def level_array(views, geom: LevelGeometry, chunks, h_range, params: DSMParams, coarse: da.Array | None) -> da.Array:
     """Lazy ``(2, H, W)`` heights and confidence of one pyramid level,
     chunked as ``chunks``: one task per chunk, each matching its chunk plus
-    ``params.halo()`` cells and returning the chunk."""
+    ``params.halo()`` cells (searching around ``coarse``, the coarser
+    level's heights, or the whole height range when ``None``) and
+    returning the chunk; then :func:`despeckle`."""
+    from tiledsm.match.pyramid import search_halo
+
     halo = params.halo()
-    out_chunks = ((2,), *chunks)
-    name = f"match-L{geom.level}"
-    coarsest = search is None
+    coarsest = coarse is None
     if coarsest:
-        search = da.zeros((1, *geom.grid.shape), chunks=((1,), *chunks), dtype=np.uint8)
+        blocks = da.zeros((1, *geom.grid.shape), chunks=((1,), *chunks), dtype=np.uint8)
     else:
-        search = _overlap(search, {1: halo, 2: halo})
+        blocks = coarse_blocks(coarse, chunks, search_halo(params.search) + halo // 2)
     matched = da.map_blocks(
-        _match_task, search, views, geom, chunks, halo, tuple(h_range), params, coarsest,
-        chunks=out_chunks, dtype=np.float32, name=name,
+        _match_task, blocks, views, geom, chunks, halo, tuple(h_range), params, coarsest,
+        chunks=((2,), *chunks), dtype=np.float32, name=f"match-L{geom.level}", new_axis=None if coarsest else 0,
     )
-    return da.stack([despeckle(matched[0], geom, params), matched[1]])
+    return despeckle(matched, geom, params)
 
 
 def _grid_centre_lonlat(grid: GroundGrid) -> tuple[float, float]:
@@ -567,8 +578,8 @@ def dsm_from_views(
 
     Each pyramid level is a dask array on its own grid; a finer level is one
     ``map_blocks`` over its grid's chunks (plus halo) with the search band
-    derived from the coarser level as an aligned dask array
-    (:func:`search_array`). Every halo is derived from the parameters, so
+    derived from the coarser level inside each task
+    (:func:`level_array`). Every halo is derived from the parameters, so
     the result does not depend on the chunking.
 
     Returns
@@ -585,9 +596,11 @@ def dsm_from_views(
     arr = None
     for level in range(levels - 1, -1, -1):
         geom = level_geometry(views, grid, level, h_range, params)
-        chunks = tuple(level_chunks(n, grid.chunk, _min_chunk(params)) for n in geom.grid.shape)
-        search = None if arr is None else search_array(arr[0], geom, chunks, h_range, params)
-        arr = level_array(views, geom, chunks, h_range, params, search)
+        # a chunk smaller than the halos would be matched in larger ones (then
+        # rechunked to the grid's): the work of a chunk grows with its halo
+        side = max(grid.chunk, _min_chunk(params))
+        chunks = tuple(level_chunks(n, side, _min_chunk(params)) for n in geom.grid.shape)
+        arr = level_array(views, geom, chunks, h_range, params, None if arr is None else arr[0])
     arr = arr.rechunk(((2,), *grid.chunks))
     # the finest level is on `grid` itself; its chunks are the grid's
     ds = xr.Dataset(
