@@ -225,6 +225,20 @@ def _keys(d, a):
     return 0.0
 
 
+@nb.njit(nogil=True, cache=True, inline="always")
+def _lattice_cell(g, stride, n0, n):
+    """Lattice interval ``k`` (clamped to ``[.., n - 2]``) and fraction of
+    global cell ``g`` on nodes every ``stride`` cells starting at node ``n0``."""
+    u = g / stride
+    k = int(np.floor(u))
+    f = u - k
+    k -= n0
+    if k > n - 2:
+        k = n - 2
+        f = u - (k + n0)
+    return k, f
+
+
 @nb.njit(nogil=True, cache=True)
 def _sample_view(img, lat_r, lat_c, stride, k0, dh, href, offset, gi0, gj0, n0i, n0j, win_r, win_c, cubic, r0, r1, c0, c1, out):
     """Sample one view at the projections of block cells ``[r0:r1, c0:c1]``
@@ -247,23 +261,9 @@ def _sample_view(img, lat_r, lat_c, stride, k0, dh, href, offset, gi0, gj0, n0i,
     jcol = np.empty(c1 - c0, np.int64)
     fcol = np.empty(c1 - c0, np.float64)
     for j in range(c0, c1):
-        wv = (gj0 + j) / stride
-        jw = int(np.floor(wv))
-        fx = wv - jw
-        j0 = jw - n0j
-        if j0 > gx - 2:
-            j0 = gx - 2
-            fx = wv - (j0 + n0j)
-        jcol[j - c0] = j0
-        fcol[j - c0] = fx
+        jcol[j - c0], fcol[j - c0] = _lattice_cell(gj0 + j, stride, n0j, gx)
     for i in range(r0, r1):
-        u = (gi0 + i) / stride
-        iu = int(np.floor(u))
-        fy = u - iu
-        i0 = iu - n0i
-        if i0 > gy - 2:
-            i0 = gy - 2
-            fy = u - (i0 + n0i)
+        i0, fy = _lattice_cell(gi0 + i, stride, n0i, gy)
         for j in range(c0, c1):
             j0 = jcol[j - c0]
             fx = fcol[j - c0]
