@@ -77,3 +77,13 @@ def test_info_image_without_camera(tmp_path):
         ds.write(np.zeros((1, 8, 8), np.uint8))
     info = describe(path)
     assert info["camera"] is None and str(path) in info["camera_error"]
+
+
+@pytest.mark.parametrize("command", ["dsm", "run", "sr", "compare"])
+def test_planned_commands_offer_a_dry_run(command):
+    """Issue 18: every computing command can be checked before it runs."""
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command")
+    text = sub.choices[command].format_help()
+    assert "--dry-run" in text and "--workers" in text
+    assert ("--allow-large" in text) == (command in ("dsm", "run"))

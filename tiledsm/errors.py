@@ -15,6 +15,8 @@ __all__ = [
     "MatchingError",
     "FingerprintMismatchError",
     "OutputLockedError",
+    "InvalidOptionError",
+    "RunTooLargeError",
 ]
 
 
@@ -62,3 +64,16 @@ class FingerprintMismatchError(TiledsmError):
 class OutputLockedError(TiledsmError):
     """Raised when another tiledsm run holds the lock of an output folder;
     the message names the folder, the holder (pid, host) and its start time."""
+
+
+class InvalidOptionError(TiledsmError):
+    """Raised when an option or recipe field has a value that cannot work
+    (``--workers 0``, an SR scale without weights, an odd chunk side); the
+    message names the option or field and what is accepted."""
+
+
+class RunTooLargeError(GridError):
+    """Raised when a run would exceed a stated size limit (cells or chunks
+    of its grid, :class:`tiledsm.plan.Limits`) before anything is computed;
+    the message gives the sizes, the limits and how to lift them
+    (``--allow-large``)."""

@@ -7,6 +7,7 @@ stores, the products, ``recipe.resolved.yaml``, ``metrics.json`` and
 
 from __future__ import annotations
 
+import inspect
 import json
 import logging
 import time
@@ -21,7 +22,7 @@ from tiledsm.recipes import DSMRecipe, dump_resolved
 
 log = logging.getLogger("tiledsm")
 
-__all__ = ["RUNNERS", "run_recipe", "write_dsm_products", "dsm_metrics"]
+__all__ = ["RUNNERS", "run_recipe", "withdraw_products", "write_dsm_products", "dsm_metrics", "grid_chunk"]
 
 RUNNERS: dict[str, Callable] = {}
 
@@ -45,31 +46,87 @@ def _setup_log(out: Path) -> logging.Handler:
     return handler
 
 
-def run_recipe(recipe, out_dir: str | Path, cluster: ClusterConfig | None = None, overwrite: bool = False) -> dict:
+def run_recipe(
+    recipe,
+    out_dir: str | Path,
+    cluster: ClusterConfig | None = None,
+    overwrite: bool = False,
+    *,
+    plan=None,
+    limits=None,
+) -> dict:
     """Run a validated recipe into ``out_dir``; returns its metrics.
 
-    The folder is locked for the run (:class:`tiledsm.provenance.OutputLock`:
-    a second run into it stops at once). Stores finished or left partial by
-    an earlier run are resumed only when their fingerprint (inputs, RPCs,
+    The run is planned first (:func:`tiledsm.plan.plan_recipe`, unless
+    ``plan`` is given): what cannot work is refused in seconds, before the
+    folder is created, locked or any cluster started. The folder is then
+    locked for the run (:class:`tiledsm.provenance.OutputLock`: a second
+    run into it stops at once). Stores finished or left partial by an
+    earlier run are resumed only when their fingerprint (inputs, RPCs,
     grid, parameters, code) equals this run's; otherwise the run stops
-    naming what changed, unless ``overwrite``. ``recipe.resolved.yaml`` and
-    ``metrics.json`` are written last, when the products are complete, so
-    they never describe products of another run.
+    naming what changed, unless ``overwrite``.
+
+    ``metrics.json`` and ``recipe.resolved.yaml`` describe the products
+    beside them: when the products are going to change (``overwrite``,
+    another resolved recipe, a DSM store to compute or complete) both are
+    withdrawn (with the DSM's exports) before anything is computed, and
+    written again last, when the products are complete. So no
+    interruption -- before the store exists, while it fills, after it is
+    finished -- leaves them claiming products they do not describe.
     """
+    from tiledsm.plan import Limits, plan_recipe
     from tiledsm.provenance import OutputLock
 
-    out = Path(out_dir).resolve()
+    out = Path(out_dir).expanduser().resolve()
+    if plan is None:
+        plan = plan_recipe(recipe, out, cluster, overwrite=overwrite, limits=limits or Limits())
     out.mkdir(parents=True, exist_ok=True)
     with OutputLock(out):
         handler = _setup_log(out)
         try:
             log.info("running pipeline %s into %s (overwrite: %s)", recipe.pipeline, out, overwrite)
-            metrics = RUNNERS[recipe.pipeline](recipe, out, cluster, overwrite=overwrite)
+            for message in plan.warnings:
+                log.warning(message)
+            withdraw_products(out, recipe, plan, overwrite)
+            runner = RUNNERS[recipe.pipeline]
+            extra = {"plan": plan} if "plan" in inspect.signature(runner).parameters else {}
+            metrics = runner(recipe, out, cluster, overwrite=overwrite, **extra)
             dump_resolved(recipe, out / "recipe.resolved.yaml")
             return metrics
         finally:
             logging.getLogger("tiledsm").removeHandler(handler)
             handler.close()
+
+
+#: files that describe a run folder's products; withdrawn while they change
+DESCRIPTIONS = ("metrics.json", "recipe.resolved.yaml")
+#: exports of the DSM store, rewritten from it at the end of a run
+DSM_EXPORTS = ("dsm.tif", "dsm.png", "dsm_error.png")
+
+
+def withdraw_products(out: Path, recipe, plan, overwrite: bool) -> list[str]:
+    """Remove ``metrics.json`` and ``recipe.resolved.yaml`` (and, for a
+    DSM, its exports) when this run is going to change the products: with
+    ``overwrite``, when the resolved recipe differs from the one stored, or
+    when the plan says the DSM store will be computed or completed
+    (``plan.withdraw``). Returns the names removed."""
+    import yaml
+
+    stored = out / "recipe.resolved.yaml"
+    try:
+        same = yaml.safe_load(stored.read_text()) == recipe.model_dump(mode="json")
+    except (OSError, yaml.YAMLError):
+        same = False
+    changes = overwrite or not same or (recipe.pipeline == "dsm" and plan.withdraw)
+    if not changes:
+        return []
+    names = DESCRIPTIONS + (DSM_EXPORTS if recipe.pipeline == "dsm" else ())
+    removed = [n for n in names if (out / n).is_file()]
+    for n in removed:
+        (out / n).unlink()
+    if removed:
+        log.info("withdrew %s: the products in %s are about to change", ", ".join(removed), out)
+    return removed
 
 
 def dsm_metrics(height: xr.DataArray, reference: xr.DataArray, mask: xr.DataArray | None = None) -> dict:
@@ -149,38 +206,40 @@ def write_dsm_products(
 
 
 @_runner("dsm")
-def run_dsm(recipe: DSMRecipe, out: Path, cluster: ClusterConfig | None = None, overwrite: bool = False) -> dict:
-    """Views (or a synthetic scene) -> DSM products and metrics."""
-    from tiledsm.dsm import dsm_from_pair
-    from tiledsm.recipes import dsm_params, grid_from_spec
+def run_dsm(
+    recipe: DSMRecipe, out: Path, cluster: ClusterConfig | None = None, overwrite: bool = False, plan=None
+) -> dict:
+    """Views (or a synthetic scene) -> DSM products and metrics.
+
+    ``plan`` (:func:`tiledsm.plan.plan_recipe`) carries the opened views, tie
+    points and lazy DSM; without it (or for a synthetic scene, made here
+    first) the run plans itself. Its warnings, and a low completeness, go
+    to ``metrics.json`` (``warnings``).
+    """
+    from tiledsm.plan import LOW_COMPLETENESS, Limits, plan_recipe
 
     cluster = cluster or ClusterConfig(scheduler=recipe.cluster.scheduler, workers=recipe.cluster.workers)
     t_start = time.perf_counter()
     inp = recipe.input
     truth_mask = None
+    limits = plan.limits if plan is not None else Limits()
     if inp.synth is not None:
+        from tiledsm.recipes import InputSpec
         from tiledsm.synth import make_scene
 
         sy = inp.synth
         log.info("making synthetic scene %s", sy.model_dump())
         scene = make_scene(out / "scene", size=sy.size, gsd=sy.gsd, bh=sy.bh, seed=sy.seed, views=sy.views, event=False)
-        images = [str(p) for p in scene.views]
-        rpcs = None
-        reference = str(scene.truth_dsm)
         truth_mask = getattr(scene, "visible_mask", None)
-    else:
-        images, rpcs, reference = inp.images, inp.rpcs, inp.reference
-    g = recipe.grid
-    grid = grid_from_spec(g)
-    params = dsm_params(g, recipe.match)
-    ds, report = dsm_from_pair(*images, rpcs=rpcs, grid=grid, params=params)
-    if recipe.output.geoid:
-        from tiledsm.dsm import heights_above_geoid
-
-        ds = heights_above_geoid(ds, recipe.output.geoid)
-        report["vertical_datum"] = ds.attrs["vertical_datum"]
+        views_recipe = recipe.model_copy(update={"input": InputSpec(
+            images=[str(p) for p in scene.views], reference=str(scene.truth_dsm))})
+        plan = plan_recipe(views_recipe, out, cluster, overwrite=overwrite, limits=limits)
+    elif plan is None or plan.prepared is None:
+        plan = plan_recipe(recipe, out, cluster, overwrite=overwrite, limits=limits)
+    prep = plan.prepared
+    reference, report = prep.reference, prep.report
     timings = write_dsm_products(
-        ds, out, cluster=cluster, cog=recipe.output.cog, quicklook=recipe.output.quicklook, overwrite=overwrite
+        prep.ds, out, cluster=cluster, cog=recipe.output.cog, quicklook=recipe.output.quicklook, overwrite=overwrite
     )
     metrics: dict = {"pipeline": "dsm", "report": report, "timings": timings}
     from tiledsm.io import open_product
@@ -188,7 +247,14 @@ def run_dsm(recipe: DSMRecipe, out: Path, cluster: ClusterConfig | None = None, 
     height = open_product(out / "dsm.zarr")["height"]
     # lazy: the client never holds the whole DSM for this
     metrics["completeness"] = float(np.isfinite(height.data).mean().compute())
-    metrics["completeness_in_footprint"] = _footprint_completeness(height, images, rpcs, report["height_range_m"])
+    metrics["completeness_in_footprint"] = _footprint_completeness(height, prep.views, prep.h_range)
+    warnings = list(plan.warnings)
+    if metrics["completeness_in_footprint"] < LOW_COMPLETENESS:
+        warnings.append(
+            f"low completeness: {metrics['completeness_in_footprint']:.0%} of the cells seen by every view have a "
+            f"height (expected >= {LOW_COMPLETENESS:.0%}; check the height range and the images' overlap)"
+        )
+        log.warning(warnings[-1])
     if reference:
         # chunk by chunk: the client never holds the whole DSM or reference
         from tiledsm.compare.accuracy import reference_accuracy
@@ -204,6 +270,7 @@ def run_dsm(recipe: DSMRecipe, out: Path, cluster: ClusterConfig | None = None, 
             metrics["vs_reference_visible"], _ = reference_accuracy(
                 height, reference, truth_mask, chunks=grid_chunk(height)
             )
+    metrics["warnings"] = warnings
     metrics["timings"]["total_s"] = time.perf_counter() - t_start
     metrics["output_mpx_per_s"] = height.size / 1e6 / max(timings["match_s"], 1e-9)
     _write_json(metrics, out / "metrics.json")
@@ -216,15 +283,15 @@ def grid_chunk(arr: xr.DataArray) -> int:
     return int(arr.chunks[0][0]) if arr.chunks else 1024
 
 
-def _footprint_completeness(height: xr.DataArray, images, rpcs, h_range) -> float:
-    """Fraction of the cells seen by every view that have a height (cells
-    sampled every ``step`` rows/columns so at most ~1 M are projected)."""
-    from tiledsm.dsm import footprint_mask, open_views
+def _footprint_completeness(height: xr.DataArray, views, h_range) -> float:
+    """Fraction of the cells seen by every view (cameras as used for
+    matching) that have a height (cells sampled every ``step`` rows/columns
+    so at most ~1 M are projected)."""
+    from tiledsm.dsm import footprint_mask
     from tiledsm.geometry.grid import GroundGrid
 
     grid = GroundGrid.like(height)
     step = max(1, int(np.ceil(np.sqrt(height.size / 1e6))))
-    views = open_views(images, rpcs)
     inside = footprint_mask(grid, views, float(np.mean(h_range)), step)
     sample = np.isfinite(height[::step, ::step].values)
     return float(sample[inside].mean()) if inside.any() else 0.0

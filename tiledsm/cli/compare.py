@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-__all__ = ["add_parser", "run"]
+from tiledsm.cli.run import add_cluster_arguments, add_plan_arguments, cluster_config
+
+__all__ = ["add_parser", "run", "add_warnings"]
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -24,27 +26,38 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--max-slope", type=float, default=70.0, help="steeper cells (degrees) are not stable terrain")
     p.add_argument("--nmad-k", type=float, default=5.0, help="outliers: |dh - median| > K x NMAD")
     p.add_argument("--chunks", type=int, default=1024, help="tile edge in cells")
-    p.add_argument("--scheduler", default=None, help="dask scheduler address, or 'synchronous' (default: local cluster)")
-    p.add_argument("--workers", type=int, default=None, help="local cluster workers (default: cores)")
+    add_cluster_arguments(p)
+    add_plan_arguments(p, large=False)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from tiledsm.cluster import ClusterConfig, compute_context
+    from tiledsm.cli.run import print_warnings
+    from tiledsm.cluster import compute_context
     from tiledsm.compare import CompareParams, CoregParams, compare_dsms
+    from tiledsm.plan import plan_compare
 
+    cluster = cluster_config(args)
+    plan = plan_compare(args.ref, args.other, args.out, stable_mask=args.stable_mask, chunks=args.chunks,
+                        cluster=cluster)
+    print_warnings("compare", plan.warnings)
+    if args.dry_run:
+        print(plan.summary())
+        return 0
+    paths = {i.role: i.path for i in plan.inputs}  # absolute
     params = CompareParams(
         coreg=args.coreg,
         deramp=args.deramp,
         coreg_params=CoregParams(nmad_k=args.nmad_k),
-        stable_mask=args.stable_mask,
+        stable_mask=paths.get("--stable-mask"),
         max_slope_deg=args.max_slope,
         chunks=args.chunks,
     )
-    with compute_context(ClusterConfig(scheduler=args.scheduler, workers=args.workers, progress=False)):
-        result = compare_dsms(args.ref, args.other, args.out, params)
+    with compute_context(cluster):
+        result = compare_dsms(paths["REF"], paths["OTHER"], plan.out, params)
+    add_warnings(plan.out / "metrics.json", plan.warnings)
     c = result.metrics["coregistration"]
     s = result.metrics["statistics"]["stable"]
     print(json.dumps({
@@ -53,3 +66,16 @@ def run(args: argparse.Namespace) -> int:
         "stable": {k: s[k] for k in ("count", "median", "nmad", "rmse")},
     }, indent=2))
     return 0
+
+
+def add_warnings(path, warnings) -> None:
+    """Add ``warnings`` to the ``warnings`` list of a ``metrics.json`` (atomic rewrite)."""
+    import json
+    from pathlib import Path
+
+    from tiledsm.io import atomic_path
+
+    metrics = json.loads(Path(path).read_text())
+    metrics["warnings"] = list(metrics.get("warnings", [])) + [w for w in warnings if w not in metrics.get("warnings", [])]
+    with atomic_path(Path(path)) as tmp:
+        Path(tmp).write_text(json.dumps(metrics, indent=2, default=float))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from tiledsm.cli.run import add_cluster_arguments, add_overwrite_argument, cluster_config
+from tiledsm.cli.run import add_cluster_arguments, add_overwrite_argument, add_plan_arguments, cluster_config
 
 __all__ = ["add_parser"]
 
@@ -30,30 +30,53 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--geoid", default=None, help="geoid grid (e.g. egm96_15.gtx): write heights above the geoid instead of the WGS84 ellipsoid")
     add_cluster_arguments(p)
     add_overwrite_argument(p)
+    add_plan_arguments(p)
     p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    from tiledsm.cli.run import _print_summary
-    from tiledsm.pipelines import run_recipe
+#: recipe field paths of the options, for messages
+OPTION_OF_FIELD = {
+    "input.images": "IMAGES", "input.reference": "--reference", "grid.like": "--like", "grid.crs": "--crs",
+    "grid.resolution": "--resolution", "grid.bounds": "--bounds", "grid.chunk": "--chunk", "grid": "--like/--bounds",
+    "match.levels": "--levels", "match.height_range": "--height-range", "output.geoid": "--geoid",
+}
+
+
+def _absolute(path: str | None) -> str | None:
+    return None if path is None else str(Path(path).expanduser().resolve())
+
+
+def dsm_recipe(args: argparse.Namespace):
+    """The ``pipeline: dsm`` recipe of the command's options, every path
+    absolute; a bad value is an :class:`~tiledsm.errors.InvalidOptionError`
+    naming the option."""
+    from pydantic import ValidationError
+
+    from tiledsm.errors import InvalidOptionError
     from tiledsm.recipes import DSMRecipe
 
     if len(args.images) < 2:
-        raise SystemExit("tiledsm dsm: error: at least two images are needed")
-    recipe = DSMRecipe.model_validate(
-        {
+        raise InvalidOptionError(f"IMAGES: at least two images are needed, got {len(args.images)}")
+    grid = dict(like=_absolute(args.like), crs=args.crs, resolution=args.resolution, bounds=args.bounds, chunk=args.chunk)
+    try:
+        return DSMRecipe.model_validate({
             "pipeline": "dsm",
             "name": Path(args.out).name,
-            "input": {"images": [str(Path(p).resolve()) for p in args.images], "reference": args.reference},
-            "grid": {
-                k: v
-                for k, v in dict(like=args.like, crs=args.crs, resolution=args.resolution, bounds=args.bounds, chunk=args.chunk).items()
-                if v is not None
-            },
+            "input": {"images": [_absolute(p) for p in args.images], "reference": _absolute(args.reference)},
+            "grid": {k: v for k, v in grid.items() if v is not None},
             "match": {"levels": args.levels, "height_range": args.height_range},
-            "output": {"geoid": str(Path(args.geoid).resolve()) if args.geoid else None},
-        }
-    )
-    metrics = run_recipe(recipe, args.out, cluster_config(args), overwrite=args.overwrite)
-    _print_summary(metrics)
-    return 0
+            "output": {"geoid": _absolute(args.geoid)},
+        })
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(p) for p in err["loc"])
+        option = next((o for f, o in OPTION_OF_FIELD.items() if loc == f or loc.startswith(f + ".")), loc)
+        raise InvalidOptionError(f"{option}: {err['msg'].removeprefix('Value error, ')}") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    from tiledsm.cli.run import plan_and_run
+    from tiledsm.plan import CLI_NAMES
+
+    cluster = cluster_config(args)
+    return plan_and_run(dsm_recipe(args), args, cluster, CLI_NAMES)

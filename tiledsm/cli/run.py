@@ -5,13 +5,16 @@ from __future__ import annotations
 import argparse
 import json
 
-__all__ = ["add_parser"]
+__all__ = [
+    "add_parser", "add_cluster_arguments", "add_overwrite_argument", "add_plan_arguments", "cluster_config",
+    "print_warnings", "print_summary", "plan_and_run",
+]
 
 
 def add_cluster_arguments(p: argparse.ArgumentParser) -> None:
     """``--scheduler`` and ``--workers``, shared by every computing command."""
     p.add_argument("--scheduler", default=None, help="dask scheduler address (tcp://host:8786) or 'synchronous'; default: a local cluster")
-    p.add_argument("--workers", type=int, default=None, help="local workers (one single-threaded process each); default: one per core")
+    p.add_argument("--workers", type=int, default=None, help="local workers (one single-threaded process each, >= 1); default: one per core")
     p.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
 
 
@@ -24,12 +27,59 @@ def add_overwrite_argument(p: argparse.ArgumentParser) -> None:
     )
 
 
-def cluster_config(args: argparse.Namespace, recipe_cluster=None):
-    from tiledsm.cluster import ClusterConfig
+def add_plan_arguments(p: argparse.ArgumentParser, large: bool = True) -> None:
+    """``--dry-run`` (and ``--allow-large``), for commands planned before
+    they run (:mod:`tiledsm.plan`)."""
+    p.add_argument(
+        "--dry-run", action="store_true",
+        help="check the inputs and print the plan (grid, chunks, tasks, memory per worker, what would be "
+        "reused) without computing or writing anything",
+    )
+    if large:
+        p.add_argument(
+            "--allow-large", action="store_true",
+            help="run grids beyond the size limits (4e9 cells, 20000 chunks) that are otherwise refused",
+        )
 
+
+def cluster_config(args: argparse.Namespace, recipe_cluster=None):
+    """The :class:`~tiledsm.cluster.ClusterConfig` of the options (falling
+    back on a recipe's ``cluster`` section); refuses ``--workers`` < 1."""
+    from tiledsm.cluster import ClusterConfig
+    from tiledsm.plan import check_workers
+
+    check_workers(args.workers, "--workers")
     scheduler = args.scheduler or (recipe_cluster.scheduler if recipe_cluster else None)
-    workers = args.workers or (recipe_cluster.workers if recipe_cluster else None)
+    workers = args.workers if args.workers is not None else (recipe_cluster.workers if recipe_cluster else None)
     return ClusterConfig(scheduler=scheduler, workers=workers, progress=not args.no_progress)
+
+
+def print_warnings(command: str, messages) -> None:
+    """Each warning as one ``tiledsm COMMAND: warning: ...`` line on stderr."""
+    import sys
+
+    for m in messages:
+        print(f"tiledsm {command}: warning: {m}", file=sys.stderr)
+
+
+def plan_and_run(recipe, args: argparse.Namespace, cluster, names) -> int:
+    """Plan a recipe into ``args.out``; print the plan (``--dry-run``) or
+    run it, printing its warnings on stderr and its summary."""
+    from tiledsm.pipelines import run_recipe
+    from tiledsm.plan import Limits, plan_recipe
+
+    plan = plan_recipe(
+        recipe, args.out, cluster, overwrite=args.overwrite, limits=Limits(allow_large=args.allow_large),
+        names=names, command=args.command,
+    )
+    print_warnings(args.command, plan.warnings)
+    if args.dry_run:
+        print(plan.summary())
+        return 0
+    metrics = run_recipe(recipe, args.out, cluster, overwrite=args.overwrite, plan=plan)
+    print_summary(metrics)
+    print_warnings(args.command, [w for w in metrics.get("warnings", []) if w not in plan.warnings])
+    return 0
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -43,20 +93,21 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="run folder")
     add_cluster_arguments(p)
     add_overwrite_argument(p)
+    add_plan_arguments(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from tiledsm.pipelines import run_recipe
+    from tiledsm.plan import RECIPE_NAMES, check_workers
     from tiledsm.recipes import load_recipe
 
+    check_workers(args.workers, "--workers")
     recipe = load_recipe(args.recipe)
-    metrics = run_recipe(recipe, args.out, cluster_config(args, getattr(recipe, "cluster", None)), overwrite=args.overwrite)
-    _print_summary(metrics)
-    return 0
+    return plan_and_run(recipe, args, cluster_config(args, getattr(recipe, "cluster", None)), RECIPE_NAMES)
 
 
-def _print_summary(metrics: dict) -> None:
+def print_summary(metrics: dict) -> None:
+    """The metrics of a run as a table (nested keys dotted)."""
     from rich.console import Console
     from rich.table import Table
 

@@ -6,9 +6,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from tiledsm.cli.run import add_cluster_arguments, cluster_config
+from tiledsm.cli.run import add_cluster_arguments, add_plan_arguments, cluster_config
 
-__all__ = ["add_parser", "run_sr", "run_train"]
+__all__ = ["add_parser", "run_sr", "run_train", "write_sr"]
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -30,6 +30,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--chunk", type=int, default=512, help="tile side, input pixels")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="torch device (cuda only when available)")
     add_cluster_arguments(p)
+    add_plan_arguments(p, large=False)
     p.set_defaults(func=run_sr)
 
     t = subparsers.add_parser(
@@ -50,30 +51,39 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_sr(args: argparse.Namespace) -> int:
-    import torch
+    from tiledsm.cli.run import print_warnings
+    from tiledsm.plan import plan_sr
+    from tiledsm.sr.registry import SRError
 
+    cluster = cluster_config(args)
+    if args.device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise SRError("--device cuda: no CUDA device is available (use --device cpu)")
+    plan = plan_sr(args.input, args.output, model=args.model, scale=args.scale, weights=args.weights,
+                   chunk=args.chunk, cluster=cluster, device=args.device, blur_sigma=args.blur_sigma,
+                   noise=args.noise, bit_depth=args.bit_depth)
+    print_warnings("sr", plan.warnings)
+    if args.dry_run:
+        print(plan.summary())
+        return 0
+    return write_sr(plan.product, plan.out, args.scale, cluster)
+
+
+def write_sr(hr, out: Path, scale: int, cluster) -> int:
+    """Compute the lazy super-resolved image ``hr`` into ``out`` (GeoTIFF
+    with RPC tags, or zarr)."""
     from tiledsm.cluster import compute_context
-    from tiledsm.io import open_scene, scene_rpc, write_geotiff_with_rpc, write_zarr
-    from tiledsm.sr.infer import super_resolve
-    from tiledsm.sr.registry import SRError, load_weights
+    from tiledsm.io import scene_rpc, write_geotiff_with_rpc, write_zarr
 
-    if args.device == "cuda" and not torch.cuda.is_available():
-        raise SRError("--device cuda: no CUDA device is available (use --device cpu)")
-    out = Path(args.output)
-    if out.suffix.lower() not in (".tif", ".tiff", ".zarr"):
-        raise SRError(f"{out}: output must end in .tif/.tiff or .zarr")
-    scene = open_scene(args.input, chunks=args.chunk)
-    if args.bit_depth is not None:
-        scene.attrs["bit_depth"] = args.bit_depth
-    model = load_weights(args.weights, args.device) if args.weights else args.model
-    hr = super_resolve(scene, model, args.scale, device=args.device, blur_sigma=args.blur_sigma, noise=args.noise)
-    with compute_context(cluster_config(args)):
+    with compute_context(cluster):
         if out.suffix.lower() == ".zarr":
             write_zarr(hr, out)
         else:
             tags = {k: v for k, v in hr.attrs.items() if k.startswith("sr_")}
             write_geotiff_with_rpc(hr, out, scene_rpc(hr), nodata=float("nan"), dtype="float32", tags=tags)
-    print(f"{out}: {hr.sizes['y']} x {hr.sizes['x']} px, model {hr.attrs['sr_model']} x{args.scale}")
+    print(f"{out}: {hr.sizes['y']} x {hr.sizes['x']} px, model {hr.attrs['sr_model']} x{scale}")
     return 0
 
 
