@@ -17,7 +17,14 @@ worker (the largest descendant process), of the client (the command's own
 process: tie points, then the metrics against the reference, in memory) and
 of the whole tree (PSS, shared pages split), and the speed-up of 2 workers
 over 1 measured in the same run. Load averages before and after each measurement are recorded:
-on a shared machine other work stretches wall times.
+on a shared machine other work stretches wall times. Before each run the same
+command is planned (``--dry-run``) and the plan's estimated peak memory per
+worker is set beside the measured one (issue 18: within 1.5x).
+
+``--bounds XMIN YMIN XMAX YMAX`` runs a synthetic case on that part of its
+truth grid only: a worker's peak is that of its largest task (chunk plus
+halo, candidate heights of the scene's height range), not of the scene's
+size, so a 16384^2 scene's per-worker peak is measured in minutes.
 
 Graph construction (no matching): the lazy DSM of a 4096^2, 8192^2 and
 16384^2 ground grid at chunks of 256 with 3 pyramid levels (the views of a
@@ -40,7 +47,9 @@ import datetime as _dt
 import json
 import os
 import platform
+import re
 import shutil
+import subprocess
 import sys
 from pathlib import Path
 
@@ -73,13 +82,40 @@ def _case_synth(run_dir: Path, size: int) -> tuple[list[str], dict]:
     return images + ["--like", truth, "--reference", truth], {"data": f"synthetic {size}x{size} px", "reference": "truth"}
 
 
-def run_case(name: str, workers: int, run_dir: Path, chunk: int, timeout: float) -> dict:
+PLANNED = re.compile(r"\((\d+) MiB\) per worker")
+
+
+def planned_worker_mib(argv: list[str]) -> float | None:
+    """The plan's estimated peak per worker (``--dry-run`` of ``argv``), MiB."""
+    r = subprocess.run([*argv, "--dry-run"], capture_output=True, text=True, timeout=600)
+    found = PLANNED.search(r.stdout)
+    if r.returncode != 0 or not found:
+        print(f"dry run failed (rc {r.returncode}):\n{r.stdout[-1500:]}{r.stderr[-1500:]}", file=sys.stderr)
+        return None
+    return float(found.group(1))
+
+
+def run_case(name: str, workers: int, run_dir: Path, chunk: int, timeout: float,
+             bounds: list[float] | None = None) -> dict:
     args, info = _case_s2p(run_dir) if name == "s2p" else _case_synth(run_dir, int(name.removeprefix("synth")))
+    if bounds:
+        if name == "s2p":
+            raise SystemExit("--bounds is for synthetic cases (s2p runs on s2p's grid)")
+        # the truth grid's CRS and cells, cut to the bounds; still scored against the truth
+        import rasterio
+
+        with rasterio.open(args[args.index("--like") + 1]) as src:
+            crs, res = src.crs.to_string(), abs(src.res[0])
+        i = args.index("--like")
+        args = args[:i] + args[i + 2:] + ["--crs", crs, "--resolution", str(res), "--bounds", *map(str, bounds)]
+        info = {**info, "bounds": bounds}
     out = run_dir / f"{name}_w{workers}"
     shutil.rmtree(out, ignore_errors=True)  # a finished store would be resumed, not recomputed
     argv = [str(TILEDSM), "dsm", *args, "--out", str(out), "--workers", str(workers), "--chunk", str(chunk), "--no-progress"]
+    planned = planned_worker_mib(argv)
     m = measure(argv, log=run_dir / f"{name}_w{workers}.log", timeout=timeout)
-    row = {"case": name, "workers": workers, "chunk": chunk, **info, "measurement": m.to_dict()}
+    row = {"case": name, "workers": workers, "chunk": chunk, **info, "planned_worker_mib": planned,
+           "measurement": m.to_dict()}
     if m.ok:
         metrics = json.loads((out / "metrics.json").read_text())
         ref = metrics.get("vs_reference", {})
@@ -135,20 +171,24 @@ def format_graph_table(rows: list[dict]) -> str:
 def format_table(rows: list[dict]) -> str:
     head = (
         "| case | workers | cells | wall (s) | match (s) | Mcells/s | speed-up vs 1 | peak per worker (MiB) "
-        "| peak client (MiB) | tree PSS (MiB) | NMAD (m) | completeness |"
+        "| planned per worker (MiB) | peak / planned | peak client (MiB) | tree PSS (MiB) | NMAD (m) | completeness |"
     )
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     base = {r["case"]: r for r in rows if r["workers"] == 1 and "match_s" in r}
     for r in rows:
         m = r["measurement"]
         if "match_s" not in r:
-            lines.append(f"| {r['case']} | {r['workers']} | failed (rc {m['returncode']}) ||||||||||")
+            lines.append(f"| {r['case']} | {r['workers']} | failed (rc {m['returncode']}) ||||||||||||")
             continue
         b = base.get(r["case"])
         speed = f"{b['match_s'] / r['match_s']:.2f}" if b else "-"
+        planned = r.get("planned_worker_mib")
+        plan = f"{planned:.0f}" if planned else "-"
+        ratio = f"{m['peak_descendant_rss_mib'] / planned:.2f}" if planned else "-"
         lines.append(
             f"| {r['case']} | {r['workers']} | {r['cells'] / 1e6:.2f} M | {m['wall_s']:.1f} | {r['match_s']:.1f} | "
-            f"{r['mcells_per_s']:.3f} | {speed} | {m['peak_descendant_rss_mib']:.0f} | {m['peak_root_rss_mib']:.0f} | "
+            f"{r['mcells_per_s']:.3f} | {speed} | {m['peak_descendant_rss_mib']:.0f} | {plan} | {ratio} | "
+            f"{m['peak_root_rss_mib']:.0f} | "
             f"{m['peak_pss_mib'] or float('nan'):.0f} | "
             f"{r['nmad_m']:.3f} | {r['completeness']:.3f} |"
         )
@@ -160,6 +200,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cases", nargs="*", default=["s2p", "synth4096"], help="s2p and/or synth<N> (none: graph only)")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--chunk", type=int, default=512)
+    ap.add_argument("--bounds", type=float, nargs=4, metavar=("XMIN", "YMIN", "XMAX", "YMAX"),
+                    help="synthetic cases: run on this part of the truth grid only (see above)")
     ap.add_argument("--graph-sizes", type=int, nargs="*", default=[4096, 8192, 16384],
                     help="grid sides whose graph construction is timed (none: skip)")
     ap.add_argument("--run-dir", default=str(REPO / "runs" / "bench_dsm"))
@@ -171,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for case in args.cases:
         for w in args.workers:
-            rows.append(run_case(case, w, run_dir, args.chunk, args.timeout))
+            rows.append(run_case(case, w, run_dir, args.chunk, args.timeout, args.bounds))
             print(format_table(rows[-1:]).splitlines()[-1], flush=True)
     table = format_table(rows)
     print(table)

@@ -497,7 +497,7 @@ EMITTERS = {
     "tiledsm/plan.py": ("dsm", "run"),
     "tiledsm/plan.py:plan_sr": ("sr",),
     "tiledsm/plan.py:plan_compare": ("compare",),
-    "tiledsm/plan.py:check_lock": ("dsm", "run", "compare"),
+    "tiledsm/provenance.py:_refuse_or_take_over": ("dsm", "run", "compare"),
     "tiledsm/plan.py:check_workers": ("dsm", "run", "compare", "sr"),
     "tiledsm/plan.py:FieldNames": ("dsm",),
 }

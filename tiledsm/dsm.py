@@ -43,6 +43,9 @@ __all__ = [
     "View",
     "open_views",
     "scene_height_range",
+    "prepare_views",
+    "level_layout",
+    "min_chunk",
     "default_grid",
     "dsm_from_views",
     "dsm_from_pair",
@@ -421,13 +424,23 @@ def level_chunks(n: int, chunk: int, min_size: int) -> tuple[int, ...]:
     return tuple(sizes)
 
 
-def _min_chunk(params: DSMParams) -> int:
+def min_chunk(params: DSMParams) -> int:
     """Smallest chunk side a level is matched in: its halo must fit in a
     neighbour, and so must the coarser cells a task derives its search
     band from (:func:`coarse_blocks`: half a chunk deep)."""
     from tiledsm.match.pyramid import search_halo
 
     return max(params.halo(), 2 * (search_halo(params.search) + params.halo() // 2))
+
+
+def level_layout(shape: tuple[int, int], chunk: int, params: DSMParams) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """Chunks ``(rows, cols)`` a pyramid level of ``shape`` cells is
+    matched in, for a grid chunked ``chunk``: a chunk smaller than the
+    halos (:func:`min_chunk`) would be matched in larger ones (then
+    rechunked to the grid's), as the work of a chunk grows with its halo."""
+    floor = min_chunk(params)
+    side = max(int(chunk), floor)
+    return tuple(level_chunks(int(n), side, floor) for n in shape)
 
 
 def _windows(chunks: tuple[int, ...], index: int, halo: int) -> tuple[int, int, int, int]:
@@ -596,10 +609,7 @@ def dsm_from_views(
     arr = None
     for level in range(levels - 1, -1, -1):
         geom = level_geometry(views, grid, level, h_range, params)
-        # a chunk smaller than the halos would be matched in larger ones (then
-        # rechunked to the grid's): the work of a chunk grows with its halo
-        side = max(grid.chunk, _min_chunk(params))
-        chunks = tuple(level_chunks(n, side, _min_chunk(params)) for n in geom.grid.shape)
+        chunks = level_layout(geom.grid.shape, grid.chunk, params)
         arr = level_array(views, geom, chunks, h_range, params, None if arr is None else arr[0])
     arr = arr.rechunk(((2,), *grid.chunks))
     # the finest level is on `grid` itself; its chunks are the grid's
@@ -646,6 +656,39 @@ def _params_dict(params: DSMParams) -> str:
     return json.dumps(dataclasses.asdict(params))
 
 
+def prepare_views(views: Sequence[View], params: DSMParams) -> tuple[tuple[float, float], list[View], dict]:
+    """Height range, relatively corrected views and report of a DSM run,
+    before its graph is built.
+
+    Tie points give the range unless ``params.height_range`` is set; the
+    relative correction of views 2.. is applied when
+    ``params.relative_correction`` (with a given range a failure of the tie
+    points is only logged: a given range is often the answer to it, and the
+    tie points' own range is reported as ``tiepoint_height_range_m``).
+
+    Returns
+    -------
+    (hmin, hmax), views, report
+        Ellipsoidal metres; the views as matched; tie points, correction and
+        ``preparation_s``.
+    """
+    t0 = time.perf_counter()
+    if params.height_range is None:
+        h_range, views, report = scene_height_range(views, params)
+    else:
+        h_range, report = tuple(params.height_range), {"height_range_m": list(params.height_range)}
+        if params.relative_correction:
+            try:
+                _, views, tie_report = scene_height_range(views, params)
+                report.update({k: v for k, v in tie_report.items() if k != "height_range_m"})
+                report["tiepoint_height_range_m"] = tie_report["height_range_m"]
+            except MatchingError as exc:
+                log.warning("no relative correction: %s", exc)
+                report["relative_correction"] = f"not applied: {exc}"
+    report["preparation_s"] = time.perf_counter() - t0
+    return (float(h_range[0]), float(h_range[1])), list(views), report
+
+
 def dsm_from_pair(
     left: str | Path,
     right: str | Path,
@@ -662,21 +705,7 @@ def dsm_from_pair(
     correction, grid).
     """
     views = open_views([left, right, *more], rpcs)
-    t0 = time.perf_counter()
-    if params.height_range is None:
-        h_range, views, report = scene_height_range(views, params)
-    else:
-        h_range, report = tuple(params.height_range), {"height_range_m": list(params.height_range)}
-        if params.relative_correction:
-            # the range is given, but the relative pointing error still needs tie points;
-            # a given range is often the answer to tie points failing, so failing here is not fatal
-            try:
-                _, views, tie_report = scene_height_range(views, params)
-                report.update({k: v for k, v in tie_report.items() if k != "height_range_m"})
-            except MatchingError as exc:
-                log.warning("no relative correction: %s", exc)
-                report["relative_correction"] = f"not applied: {exc}"
-    report["preparation_s"] = time.perf_counter() - t0
+    h_range, views, report = prepare_views(views, params)
     if grid is None:
         grid = default_grid(views, h_range, params)
     report["grid"] = {"crs": grid.crs, "resolution": grid.resolution, "width": grid.width, "height": grid.height, "chunk": grid.chunk}

@@ -72,13 +72,11 @@ __all__ = [
     "estimate_worker_memory",
     "dsm_levels",
     "check_workers",
-    "check_lock",
     "new_plan",
     "existing_file",
     "seen_fraction",
     "dsm_reuse",
     "check_sr_weights",
-    "prepare_views",
     "plan_dsm",
     "plan_recipe",
     "plan_sr",
@@ -449,15 +447,10 @@ def dsm_levels(views, grid, h_range: tuple[float, float], levels: int, params) -
     import numpy as np
     import rasterio
 
-    from tiledsm.dsm import level_chunks, level_geometry
+    from tiledsm.dsm import level_geometry, level_layout
     from tiledsm.geometry.footprint import image_window
-    from tiledsm.match.pyramid import search_halo
 
     halo = params.halo()
-    # as tiledsm.dsm.dsm_from_views chunks a level: at least its halos (the
-    # match halo, and the coarser cells a task derives its band from)
-    min_chunk = max(halo, 2 * (search_halo(params.search) + halo // 2))
-    side = max(grid.chunk, min_chunk)
     itemsize = 1
     for v in views:
         with rasterio.open(v.path) as src:
@@ -469,7 +462,7 @@ def dsm_levels(views, grid, h_range: tuple[float, float], levels: int, params) -
     for level in range(levels - 1, -1, -1):
         geom = level_geometry(views, grid, level, h_range, params)
         g = geom.grid
-        chunks = [level_chunks(n, side, min_chunk) for n in g.shape]
+        chunks = level_layout(g.shape, grid.chunk, params)
         task = tuple(_largest_task(n, ch, halo) for n, ch in zip(g.shape, chunks))
         full = math.ceil(span / geom.step - 1e-9) + 1
         nd = full if level == levels - 1 else min(full, fine_band)
@@ -536,44 +529,18 @@ def _memory_warning(plan: Plan, config) -> None:
         )
 
 
-def check_lock(out: Path) -> None:
-    """Refuse now, as the run would, an output folder whose lock
-    (:class:`tiledsm.provenance.OutputLock`) a live run holds (read only;
-    a stale lock is left for the run to take over)."""
-    import socket
-
-    from tiledsm.provenance import LOCK_NAME
-
-    try:
-        info = json.loads((out / LOCK_NAME).read_text(encoding="utf-8"))
-        pid, host = int(info["pid"]), str(info["host"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return
-    if host == socket.gethostname():
-        if pid == os.getpid():
-            return  # this very run holds it
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            return
-        except OSError:
-            pass
-    raise OutputLockedError(
-        f"{out}: another tiledsm run is writing there (pid {pid} on {host}, started {info.get('started', '?')}); "
-        "wait for it to finish, or use another --out"
-    )
-
-
 def new_plan(command: str, out: str | os.PathLike, cluster=None, *, limits: Limits = Limits(),
              workers: str = "--workers", folder: bool = True) -> Plan:
     """An empty :class:`Plan` of ``command`` writing ``out`` (made
     absolute), after the checks every command shares: ``workers`` (the
     option or field naming the worker count) >= 1, and, for an output
-    ``folder``, no live run holding it (:func:`check_lock`)."""
+    ``folder``, no live run holding it (:meth:`tiledsm.provenance.OutputLock.check`)."""
     out = Path(out).expanduser().resolve()
     check_workers(getattr(cluster, "workers", None), workers)
     if folder and out.is_dir():
-        check_lock(out)
+        from tiledsm.provenance import OutputLock
+
+        OutputLock(out).check()
     return Plan(command, out, cluster=describe_cluster(cluster), limits=limits)
 
 
@@ -614,33 +581,6 @@ def seen_fraction(grid, views, height: float) -> float:
 
 
 # --------------------------------------------------------------------------- DSM
-def prepare_views(views: list, params) -> tuple[tuple[float, float], list, dict]:
-    """Height range, relatively corrected views and report of a DSM run:
-    tie points give the range unless ``params.height_range`` is set, and
-    the relative correction of views 2.. when asked (a failure of the tie
-    points is then only logged: a given range is often the answer to it).
-    Same as :func:`tiledsm.dsm.dsm_from_pair` does before building its graph."""
-    import time
-
-    from tiledsm.dsm import scene_height_range
-
-    t0 = time.perf_counter()
-    if params.height_range is None:
-        h_range, views, report = scene_height_range(views, params)
-    else:
-        h_range, report = tuple(params.height_range), {"height_range_m": list(params.height_range)}
-        if params.relative_correction:
-            try:
-                _, views, tie_report = scene_height_range(views, params)
-                report.update({k: v for k, v in tie_report.items() if k != "height_range_m"})
-                report["tiepoint_height_range_m"] = tie_report["height_range_m"]
-            except MatchingError as exc:
-                log.warning("no relative correction: %s", exc)
-                report["relative_correction"] = f"not applied: {exc}"
-    report["preparation_s"] = time.perf_counter() - t0
-    return (float(h_range[0]), float(h_range[1])), views, report
-
-
 def _dsm_params(recipe, names: FieldNames):
     from tiledsm.recipes import dsm_params
 
@@ -765,6 +705,8 @@ def plan_dsm(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names
         plan.inputs.append(InputInfo(names.like, like, f"its grid: {grid.height} x {grid.width} cells, {grid.crs}"))
     if grid is not None:
         _check_grid_size(grid, limits, what, names)
+    from tiledsm.dsm import prepare_views
+
     h_range, views, report = prepare_views(views, params)
     plan.height_range = h_range
     if "tiepoint_height_range_m" in report:

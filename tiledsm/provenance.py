@@ -611,6 +611,26 @@ class OutputLock:
             return None
         return info
 
+    def check(self) -> None:
+        """Refuse now, as :meth:`acquire` would, a folder whose lock a live
+        run holds (or a run on another host), without taking it: a missing,
+        stale or unreadable lock passes (:meth:`acquire` takes it over), and
+        so does a lock held by this very process (its plan ran inside it).
+
+        Raises
+        ------
+        OutputLockedError
+        """
+        try:
+            info = self._read()
+        except FileNotFoundError:
+            return
+        if info is None:
+            return
+        if info["host"] == socket.gethostname() and (info["pid"] == os.getpid() or not _pid_alive(info["pid"])):
+            return
+        self._refuse_or_take_over(info, take_over=True)
+
     def acquire(self) -> None:
         """Take the lock.
 
