@@ -494,12 +494,14 @@ EMITTERS = {
     "tiledsm/cli/dsm.py": ("dsm",),
     "tiledsm/cli/compare.py": ("compare",),
     "tiledsm/cli/run.py": ("dsm", "run", "sr", "compare"),
-    "tiledsm/plan.py": ("dsm", "run"),
-    "tiledsm/plan.py:plan_sr": ("sr",),
-    "tiledsm/plan.py:plan_compare": ("compare",),
+    "tiledsm/plan/core.py": ("dsm", "run"),
+    "tiledsm/plan/dsm.py": ("dsm", "run"),
+    "tiledsm/plan/recipes.py": ("dsm", "run"),
+    "tiledsm/plan/stages.py:plan_sr": ("sr",),
+    "tiledsm/plan/stages.py:plan_compare": ("compare",),
     "tiledsm/provenance.py:_refuse_or_take_over": ("dsm", "run", "compare"),
-    "tiledsm/plan.py:check_workers": ("dsm", "run", "compare", "sr"),
-    "tiledsm/plan.py:FieldNames": ("dsm",),
+    "tiledsm/plan/core.py:check_workers": ("dsm", "run", "compare", "sr"),
+    "tiledsm/plan/core.py:FieldNames": ("dsm",),
 }
 OPTION = re.compile(r"(?<![\w-])--[a-z][a-z-]*")
 

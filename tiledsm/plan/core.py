@@ -1,0 +1,299 @@
+"""The plan itself: field names, limits, :class:`Plan` and the checks every command shares."""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+from tiledsm.errors import InputFileError, InvalidOptionError, RunTooLargeError
+from tiledsm.plan.memory import LevelPlan, MemoryEstimate, GIB
+
+
+#: below this completeness inside the common footprint a DSM run warns
+LOW_COMPLETENESS = 0.7
+#: below this fraction of grid cells seen by every view the plan warns
+MOSTLY_OUTSIDE = 0.5
+#: samples per grid side when measuring what the images see
+_FOOTPRINT_SAMPLES = 200
+
+
+# --------------------------------------------------------------------------- names and limits
+@dataclass(frozen=True)
+class FieldNames:
+    """How the user spelled each input, so that messages name it: command
+    line options (:data:`CLI_NAMES`) or recipe field paths
+    (:data:`RECIPE_NAMES`)."""
+
+    images: str = "IMAGES"
+    rpcs: str = "input.rpcs"
+    reference: str = "--reference"
+    like: str = "--like"
+    bounds: str = "--bounds"
+    resolution: str = "--resolution"
+    crs: str = "--crs"
+    chunk: str = "--chunk"
+    levels: str = "--levels"
+    height_range: str = "--height-range"
+    geoid: str = "--geoid"
+    workers: str = "--workers"
+
+
+#: names of ``tiledsm dsm``'s options
+CLI_NAMES = FieldNames()
+#: names of a recipe's fields (``tiledsm run``)
+RECIPE_NAMES = FieldNames(
+    images="input.images", reference="input.reference", like="grid.like", bounds="grid.bounds",
+    resolution="grid.resolution", crs="grid.crs", chunk="grid.chunk", levels="match.levels",
+    height_range="match.height_range", geoid="output.geoid", workers="cluster.workers",
+)
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Size limits a run must stay within unless ``allow_large``.
+
+    Attributes
+    ----------
+    max_cells : int
+        Cells of the output grid. 4e9 cells (a 63 000² grid) are 32 GB of
+        float32 height and confidence.
+    max_chunks : int
+        Chunks of the output grid. The client builds and holds the task
+        graph, about 30 tasks per chunk at two levels: measured on the
+        2-core development machine, 16 384 chunks (a 16384² grid in chunks
+        of 128) gave 0.44 M tasks, built in 13 s with 150 MiB more in the
+        client, before anything is submitted; the 1.1 M chunks of issue 18's
+        ``--resolution 0.001`` would take hours.
+    allow_large : bool
+        Lift both limits (``--allow-large``).
+    """
+
+    max_cells: int = 4 * 10**9
+    max_chunks: int = 20_000
+    allow_large: bool = False
+
+    def check(self, cells: int, chunks: int, what: str, hint: str) -> None:
+        """Raise :class:`~tiledsm.errors.RunTooLargeError` when ``cells`` or
+        ``chunks`` exceed the limits (and they are not lifted); ``what``
+        starts the message, ``hint`` says how to make the run smaller."""
+        if self.allow_large or (cells <= self.max_cells and chunks <= self.max_chunks):
+            return
+        raise RunTooLargeError(
+            f"{what}: {cells:.3g} cells in {chunks:,} chunks, beyond the limits of {self.max_cells:.3g} cells "
+            f"and {self.max_chunks:,} chunks; {hint}, or pass --allow-large"
+        )
+
+
+# --------------------------------------------------------------------------- the plan
+@dataclass(frozen=True)
+class InputInfo:
+    """One input file of a run: its role (option or field), absolute path
+    and what was read from it."""
+
+    role: str
+    path: str
+    detail: str = ""
+
+
+@dataclass(frozen=True)
+class PreparedDSM:
+    """What a DSM plan opened and built, handed to the run so nothing is
+    done twice: the views (cameras corrected), grid, height range, lazy
+    dataset (:func:`tiledsm.dsm.dsm_from_views`) and its report."""
+
+    images: list[str]
+    rpcs: list[str | None] | None
+    reference: str | None
+    views: list
+    grid: Any
+    h_range: tuple[float, float]
+    ds: Any
+    report: dict
+
+
+@dataclass
+class Plan:
+    """What a run will read, compute, write and reuse, made before it starts.
+
+    Attributes
+    ----------
+    command : str
+        The ``tiledsm`` command (``dsm``, ``run``, ``sr``, ``compare``).
+    out : pathlib.Path
+        Absolute output folder (or file, for ``sr``).
+    cluster : str
+        Where the run would compute.
+    inputs : list of InputInfo
+    grid : str
+        The output grid in words (CRS, resolution, shape, chunks).
+    height_range : (float, float) or None
+    levels : list of LevelPlan
+    tasks : int or None
+        Tasks of the lazy dask graph (None when not built).
+    memory : MemoryEstimate or None
+    reuse : str
+        What an earlier run in ``out`` leaves that would be reused.
+    withdraw : bool
+        Products in ``out`` will change: their ``metrics.json``,
+        ``recipe.resolved.yaml`` and exports are removed before the run
+        starts, so they never describe products of another run.
+    warnings, notes : list of str
+    limits : Limits
+    prepared : PreparedDSM or None
+        The DSM stage's prepared inputs (``dsm`` pipeline only).
+    product : object or None
+        The lazy product the run computes, when the plan built it (``sr``).
+    """
+
+    command: str
+    out: Path
+    cluster: str = ""
+    inputs: list[InputInfo] = field(default_factory=list)
+    grid: str = ""
+    height_range: tuple[float, float] | None = None
+    levels: list[LevelPlan] = field(default_factory=list)
+    tasks: int | None = None
+    memory: MemoryEstimate | None = None
+    reuse: str = "nothing (no earlier run in the output folder)"
+    withdraw: bool = True
+    warnings: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    limits: Limits = field(default_factory=Limits)
+    prepared: PreparedDSM | None = field(default=None, repr=False)
+    product: Any = field(default=None, repr=False)
+
+    def warn(self, message: str) -> None:
+        """Add a warning (the command prints it; a run logs it in ``run.log``
+        and writes it into ``metrics.json``)."""
+        self.warnings.append(message)
+
+    def summary(self) -> str:
+        """The plan as text (what ``--dry-run`` prints)."""
+        rows: list[tuple[str, str]] = [("out", str(self.out)), ("cluster", self.cluster)]
+        rows += [("inputs" if k == 0 else "", f"{i.role}: {i.path}" + (f" ({i.detail})" if i.detail else ""))
+                 for k, i in enumerate(self.inputs)]
+        if self.height_range is not None:
+            rows.append(("heights", f"{self.height_range[0]:.1f} .. {self.height_range[1]:.1f} m (ellipsoidal)"))
+        if self.grid:
+            rows.append(("grid", self.grid))
+        for k, lv in enumerate(self.levels):
+            rows.append((
+                "levels" if k == 0 else "",
+                f"L{lv.level}: {lv.shape[0]} x {lv.shape[1]} cells of {lv.resolution:g} m, {lv.chunks} matching tasks, "
+                f"step {lv.step:.3f} m, <= {lv.candidates} candidates/cell, largest task "
+                f"{lv.task_cells[0]} x {lv.task_cells[1]} cells, image window {lv.window_px / 1e6:.2f} Mpx",
+            ))
+        if self.tasks is not None:
+            rows.append(("tasks", f"{self.tasks:,} in the dask graph"))
+        if self.memory is not None:
+            rows.append(("memory", self.memory.text()))
+        rows.append(("reuse", self.reuse))
+        rows += [("notes" if k == 0 else "", n) for k, n in enumerate(self.notes)]
+        rows += [("warnings" if k == 0 else "", w) for k, w in enumerate(self.warnings)] or [("warnings", "none")]
+        width = max(len(k) for k, _ in rows)
+        head = f"plan of tiledsm {self.command} (nothing computed, nothing written)"
+        return "\n".join([head] + [f"  {k:<{width}}  {v}" for k, v in rows])
+
+
+# --------------------------------------------------------------------------- generic checks
+def existing_file(path: str | os.PathLike, name: str) -> str:
+    """``path`` made absolute; :class:`~tiledsm.errors.InputFileError`
+    naming the option/field ``name`` when it is not a file (zarr stores,
+    which are folders, are accepted)."""
+    p = Path(path).expanduser().resolve()
+    if not p.exists():
+        raise InputFileError(f"{p}: {name}: no such file")
+    if p.is_dir() and p.suffix != ".zarr":
+        raise InputFileError(f"{p}: {name}: is a folder, expected a file")
+    return str(p)
+
+
+def check_workers(workers: int | None, name: str = "--workers") -> None:
+    """Refuse a worker count below 1 (a cluster without workers waits forever)."""
+    if workers is not None and int(workers) < 1:
+        raise InvalidOptionError(f"{name}: must be at least 1 worker, got {workers}")
+
+
+def describe_cluster(config) -> str:
+    """Where a :class:`~tiledsm.cluster.ClusterConfig` computes, in words
+    (nothing is started or contacted)."""
+    if config is None or config.scheduler is None:
+        import psutil
+
+        n = (config.workers if config is not None else None) or os.cpu_count() or 1
+        limit = psutil.virtual_memory().total / n
+        return f"local cluster: {n} single-threaded worker processes, memory limit ~{limit / GIB:.1f} GiB each"
+    if config.scheduler == "synchronous":
+        return "in this process (synchronous scheduler)"
+    return f"existing cluster at {config.scheduler} (not contacted by the plan)"
+
+
+def memory_warning(plan: Plan, config) -> None:
+    """Warn when the estimated peak exceeds a local worker's memory limit."""
+    if plan.memory is None or (config is not None and config.scheduler is not None):
+        return
+    import psutil
+
+    n = (config.workers if config is not None else None) or os.cpu_count() or 1
+    limit = psutil.virtual_memory().total / n
+    if plan.memory.total > limit:
+        plan.warn(
+            f"estimated peak per worker {plan.memory.total / GIB:.1f} GiB exceeds the memory limit "
+            f"{limit / GIB:.1f} GiB of each of {n} local workers: use a smaller chunk or fewer workers"
+        )
+
+
+def new_plan(command: str, out: str | os.PathLike, cluster=None, *, limits: Limits = Limits(),
+             workers: str = "--workers", folder: bool = True) -> Plan:
+    """An empty :class:`Plan` of ``command`` writing ``out`` (made
+    absolute), after the checks every command shares: ``workers`` (the
+    option or field naming the worker count) >= 1, and, for an output
+    ``folder``, no live run holding it (:meth:`tiledsm.provenance.OutputLock.check`)."""
+    out = Path(out).expanduser().resolve()
+    check_workers(getattr(cluster, "workers", None), workers)
+    if folder and out.is_dir():
+        from tiledsm.provenance import OutputLock
+
+        OutputLock(out).check()
+    return Plan(command, out, cluster=describe_cluster(cluster), limits=limits)
+
+
+def raster_header(path: str, name: str) -> dict:
+    """CRS, bounds, shape and dtype of a raster; errors name ``name``."""
+    import rasterio
+
+    try:
+        with rasterio.open(path) as src:
+            return {"crs": src.crs, "bounds": tuple(src.bounds), "shape": (src.height, src.width),
+                    "dtype": src.dtypes[0], "res": abs(src.transform.a)}
+    except rasterio.errors.RasterioIOError as exc:
+        raise InputFileError(f"{path}: {name}: not a readable raster ({exc})") from exc
+
+
+def overlap_fraction(bounds: Sequence[float], crs, grid) -> float:
+    """Fraction of ``grid``'s area inside ``bounds`` (given in ``crs``)."""
+    from rasterio.warp import transform_bounds
+
+    left, bottom, right, top = transform_bounds(crs, grid.crs, *bounds, densify_pts=21)
+    g = grid.bounds
+    w = max(0.0, min(right, g[2]) - max(left, g[0]))
+    h = max(0.0, min(top, g[3]) - max(bottom, g[1]))
+    return w * h / ((g[2] - g[0]) * (g[3] - g[1]))
+
+
+def format_bounds(b: Sequence[float]) -> str:
+    return "(" + ", ".join(f"{v:.1f}" for v in b) + ")"
+
+
+def seen_fraction(grid, views, height: float) -> float:
+    """Fraction of ``grid``'s cells (sampled on at most ~200² of them)
+    whose centre at ``height`` projects inside every view."""
+    from tiledsm.dsm import footprint_mask
+
+    step = max(1, math.ceil(max(grid.shape) / _FOOTPRINT_SAMPLES))
+    return float(footprint_mask(grid, views, height, step).mean())
+
+

@@ -1,0 +1,225 @@
+"""The plan of a DSM run: inputs, grid, height range, levels, reuse."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Sequence
+
+from tiledsm.errors import (
+    GridError,
+    InvalidOptionError,
+    MatchingError,
+    NoOverlapError,
+    TiledsmError,
+)
+from tiledsm.plan.core import FieldNames, InputInfo, Limits, MOSTLY_OUTSIDE, Plan, PreparedDSM, RECIPE_NAMES, format_bounds, memory_warning, overlap_fraction, raster_header, existing_file, seen_fraction
+from tiledsm.plan.memory import dsm_levels
+
+
+# --------------------------------------------------------------------------- DSM
+def _dsm_params(recipe, names: FieldNames):
+    from tiledsm.recipes import dsm_params
+
+    try:
+        return dsm_params(recipe.grid, recipe.match)
+    except (ValueError, TypeError) as exc:
+        text = str(exc)
+        name = names.chunk if "chunk" in text else names.levels if "levels" in text else "match.params"
+        raise InvalidOptionError(f"{name}: {text}") from exc
+
+
+def _explicit_grid(spec, names: FieldNames, like: str | None):
+    """The grid a recipe's ``grid`` section names (``like`` or ``bounds``)
+    and the option to blame for it, or ``(None, resolution option)``."""
+    from tiledsm.geometry.grid import GroundGrid
+
+    if like:
+        return GroundGrid.like(like, chunk=spec.chunk), f"{names.like} {like}"
+    if spec.bounds:
+        return GroundGrid.from_bounds(spec.crs, spec.bounds, spec.resolution, chunk=spec.chunk), names.bounds
+    return None, names.resolution
+
+
+def grid_text(grid) -> str:
+    nby, nbx = grid.numblocks
+    return (f"{grid.crs}, {grid.resolution:g} m cells, {grid.height} x {grid.width} cells "
+            f"({grid.height * grid.width / 1e6:.3g} Mcells), chunks of {grid.chunk}: {nby} x {nbx} = {nby * nbx}, "
+            f"bounds {format_bounds(grid.bounds)}")
+
+
+def _check_grid_size(grid, limits: Limits, what: str, names: FieldNames) -> None:
+    nby, nbx = grid.numblocks
+    limits.check(
+        grid.width * grid.height, nby * nbx,
+        f"{what}: the DSM grid would be {grid.height:,} x {grid.width:,} cells of {grid.resolution:g} m",
+        f"choose a coarser {names.resolution}, a smaller grid ({names.bounds}) or a larger {names.chunk}",
+    )
+
+
+def _store_fingerprint(path: Path) -> dict | None:
+    import zarr
+
+    try:
+        raw = zarr.open_group(str(path), mode="r").attrs.get("fingerprint")
+    except Exception as exc:  # noqa: BLE001 - any unreadable store is in the way
+        raise TiledsmError(f"{path}: an unreadable store is in the way ({exc}); rerun with --overwrite") from exc
+    return json.loads(raw) if isinstance(raw, str) else raw
+
+
+def dsm_reuse(out: Path, grid, fingerprint: dict, overwrite: bool) -> tuple[str, bool]:
+    """What of ``out/dsm.zarr`` (finished) or ``out/dsm.zarr.partial`` a
+    run would reuse, and whether its products will change (``withdraw``).
+
+    Raises
+    ------
+    FingerprintMismatchError
+        The stored DSM was computed from other inputs or parameters and
+        not ``overwrite`` (the message the run itself would give).
+    """
+    from tiledsm.io import ChunkStore
+    from tiledsm.provenance import check_resume
+
+    final = out / "dsm.zarr"
+    store = ChunkStore(str(final), ("height", "confidence"), grid.shape, (grid.chunk, grid.chunk))
+    total = grid.numblocks[0] * grid.numblocks[1]
+    for path, state in ((final, "finished"), (store.partial_path, "partial")):
+        if not path.exists():
+            continue
+        if overwrite:
+            return f"nothing: --overwrite discards the {state} DSM {path} and computes all {total} chunks", True
+        check_resume(_store_fingerprint(path) or {}, fingerprint, str(final))
+        if state == "finished":
+            return f"all {total} chunks of the finished DSM {final} (same inputs and parameters)", False
+        done = int(store.done().sum())
+        return f"{done} of {total} chunks of the partial DSM {path}; {total - done} to compute", True
+    return f"nothing (no DSM in {out} yet): {total} chunks to compute", True
+
+
+def plan_dsm(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names: FieldNames = RECIPE_NAMES) -> Plan:
+    """Fill ``plan`` (made by :func:`plan_recipe`) for a ``pipeline: dsm``
+    recipe (``tiledsm dsm`` builds one).
+
+    Checks, in this order, each failure one line naming the option or
+    field: the input files exist; the views and cameras open; the
+    parameters are valid; an explicit grid (``like``/``bounds``) is within
+    ``plan.limits``; then tie points give the height range and relative
+    correction (a few seconds); a given height range meets them; the
+    default grid is within the limits; the grid is seen by the images; the
+    reference covers the grid; the lazy graph is built and counted; the
+    earlier run in ``plan.out``, if any, can be resumed. A synthetic input
+    (``input.synth``) is made by the run, so its plan stops at the inputs.
+
+    Returns
+    -------
+    Plan
+        ``plan``, with :attr:`Plan.prepared` for the run (None for
+        synthetic input).
+    """
+    from tiledsm.dsm import dsm_from_views, heights_above_geoid, open_views
+
+    out, limits = plan.out, plan.limits
+    inp, spec = recipe.input, recipe.grid
+    if inp.synth is not None:
+        plan.notes.append(f"synthetic scene {inp.synth.size}² px at {inp.synth.gsd} m is made by the run in "
+                          f"{out / 'scene'}; its grid, graph and memory are planned then")
+        plan.reuse = "decided once the scene is made: a DSM store in the folder is resumed if its fingerprint matches"
+        return plan
+    images = [existing_file(p, names.images) for p in inp.images]
+    rpcs = [None if r is None else existing_file(r, names.rpcs) for r in inp.rpcs] if inp.rpcs else None
+    reference = existing_file(inp.reference, names.reference) if inp.reference else None
+    like = existing_file(spec.like, names.like) if spec.like else None
+    geoid = existing_file(recipe.output.geoid, names.geoid) if recipe.output.geoid else None
+    views = open_views(images, rpcs)
+    for v in views:
+        source = (v.rpc.source or "?").replace(v.path, "").strip(" ()") or v.rpc.source
+        plan.inputs.append(InputInfo(names.images, v.path, f"{v.shape[0]} x {v.shape[1]} px, camera: {source}"))
+    params = _dsm_params(recipe, names)
+    if params.height_range is not None and not params.height_range[0] < params.height_range[1]:
+        raise InvalidOptionError(f"{names.height_range}: HMIN must be below HMAX, got {list(params.height_range)}")
+    grid, what = _explicit_grid(spec, names, like)
+    if like:
+        plan.inputs.append(InputInfo(names.like, like, f"its grid: {grid.height} x {grid.width} cells, {grid.crs}"))
+    if grid is not None:
+        _check_grid_size(grid, limits, what, names)
+    from tiledsm.dsm import prepare_views
+
+    h_range, views, report = prepare_views(views, params)
+    plan.height_range = h_range
+    if "tiepoint_height_range_m" in report:
+        _check_given_range(plan, h_range, report["tiepoint_height_range_m"], names.height_range)
+    if grid is None:
+        from tiledsm.dsm import default_grid
+
+        grid = default_grid(views, h_range, params)
+        what = f"{names.resolution} {grid.resolution:g}" if spec.resolution else "the default grid"
+        _check_grid_size(grid, limits, what, names)
+    report["grid"] = {"crs": grid.crs, "resolution": grid.resolution, "width": grid.width, "height": grid.height,
+                      "chunk": grid.chunk}
+    plan.grid = grid_text(grid)
+    _check_seen(plan, grid, views, h_range, what)
+    if reference:
+        _check_reference(plan, reference, grid, names.reference)
+    if geoid:
+        plan.inputs.append(InputInfo(names.geoid, geoid))
+    ds = dsm_from_views(views, grid, h_range, params)
+    if geoid:
+        ds = heights_above_geoid(ds, geoid)
+        report["vertical_datum"] = ds.attrs["vertical_datum"]
+    plan.tasks = len(ds.__dask_graph__())
+    plan.levels, plan.memory = dsm_levels(views, grid, h_range, int(ds.attrs["levels"]), params)
+    memory_warning(plan, cluster)
+    plan.reuse, plan.withdraw = dsm_reuse(out, grid, json.loads(ds.attrs["fingerprint"]), overwrite)
+    plan.prepared = PreparedDSM(images, rpcs, reference, views, grid, h_range, ds, report)
+    return plan
+
+
+def _check_given_range(plan: Plan, given: tuple[float, float], tie: Sequence[float], name: str) -> None:
+    """Refuse a given height range that misses the tie points' heights
+    (every cell would be NaN); warn when it covers less than half of them."""
+    common = min(given[1], tie[1]) - max(given[0], tie[0])
+    text = f"{name} {given[0]:g} {given[1]:g}: the tie points lie at {tie[0]:.1f} .. {tie[1]:.1f} m (margin included)"
+    if common <= 0:
+        raise MatchingError(f"{text}, outside the given range: every cell would be NaN")
+    if common < 0.5 * (tie[1] - tie[0]):
+        plan.warn(f"{text}; the given range covers {common / (tie[1] - tie[0]):.0%} of them")
+
+
+def _check_seen(plan: Plan, grid, views, h_range, what: str) -> None:
+    """Refuse a grid no view sees; warn when most of it is unseen."""
+    frac = seen_fraction(grid, views, float(sum(h_range) / 2))
+    plan.notes.append(f"{frac:.0%} of the grid's cells are seen by every view")
+    refuse_or_warn(
+        plan, frac,
+        GridError(f"{what}: the DSM grid {format_bounds(grid.bounds)} ({grid.crs}) lies outside what the images see "
+                  f"(no sampled cell projects into every view); the DSM would be empty"),
+        f"{what}: the grid is mostly outside the images: only {frac:.0%} of its cells are seen by every view",
+    )
+
+
+def refuse_or_warn(plan: Plan, fraction: float, error: TiledsmError, warning: str) -> None:
+    """Raise ``error`` when ``fraction`` (of a grid covered) is 0; add
+    ``warning`` to the plan when it is below :data:`MOSTLY_OUTSIDE`."""
+    if fraction == 0:
+        raise error
+    if fraction < MOSTLY_OUTSIDE:
+        plan.warn(warning)
+
+
+def _check_reference(plan: Plan, path: str, grid, name: str) -> None:
+    """Refuse a reference raster without CRS or outside the grid; warn when
+    it covers little of it."""
+    head = raster_header(path, name)
+    if head["crs"] is None:
+        raise GridError(f"{path}: {name}: has no CRS, so it cannot be compared with the DSM grid")
+    frac = overlap_fraction(head["bounds"], head["crs"], grid)
+    plan.inputs.append(InputInfo(name, path, f"{head['shape'][0]} x {head['shape'][1]} cells, {head['crs']}, "
+                                             f"covers {frac:.0%} of the grid"))
+    refuse_or_warn(
+        plan, frac,
+        NoOverlapError(f"{path}: {name}: covers none of the DSM grid (reference bounds {format_bounds(head['bounds'])} "
+                       f"in {head['crs']}, grid bounds {format_bounds(grid.bounds)} in {grid.crs})"),
+        f"{path}: {name}: covers only {frac:.0%} of the DSM grid",
+    )
+
+
