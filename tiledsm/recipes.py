@@ -78,7 +78,31 @@ class MatchSpec(_Strict):
     height_range: Optional[tuple[float, float]] = None
     height_margin: float = Field(10.0, ge=0)
     relative_correction: bool = True
-    params: dict[str, Any] = Field(default_factory=dict, description="SGVLLParams fields")
+    params: dict[str, Any] = Field(default_factory=dict, validate_default=True, description="SGVLLParams fields")
+
+    @field_validator("params")
+    @classmethod
+    def _matching_params(cls, value: dict[str, Any]) -> dict[str, Any]:
+        """Every field of :class:`~tiledsm.match.sgvll.SGVLLParams`, those
+        given checked by name and type, the others at their defaults (so
+        the resolved recipe shows every value used)."""
+        import dataclasses
+
+        from pydantic import TypeAdapter
+
+        from tiledsm.match.sgvll import SGVLLParams
+
+        names = [f.name for f in dataclasses.fields(SGVLLParams)]
+        unknown = [k for k in value if k not in names]
+        if unknown:
+            raise ValueError(f"unknown matching parameter(s) {', '.join(map(repr, unknown))}; valid: {', '.join(names)}")
+        try:
+            params = TypeAdapter(SGVLLParams).validate_python(dict(value))
+        except ValidationError as exc:
+            raise ValueError("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())) from None
+        except (TypeError, ValueError) as exc:  # the dataclass's own checks
+            raise ValueError(str(exc)) from None
+        return dataclasses.asdict(params)
 
 
 def grid_from_spec(grid: GridSpec):
