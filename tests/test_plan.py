@@ -488,7 +488,8 @@ def test_relative_out_on_an_external_cluster(scene, tmp_path):
 #: which commands can show the messages raised in a module (or one of its functions)
 EMITTERS = {
     "tiledsm/provenance.py": ("dsm", "run"),
-    "tiledsm/io.py": ("dsm", "run"),
+    "tiledsm/io/stores.py": ("dsm", "run"),
+    "tiledsm/io/atomic.py": ("dsm", "run"),
     "tiledsm/sr/registry.py": ("sr",),
     "tiledsm/cli/sr.py": ("sr",),
     "tiledsm/cli/dsm.py": ("dsm",),

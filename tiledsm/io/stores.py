@@ -1,78 +1,26 @@
-"""Scenes and stores: open images with their camera, write products atomically,
-and fill chunked zarr stores block by block with resume.
-
-Conventions
------------
-- **Scenes** (:func:`open_scene`) are lazy, dask-backed ``float32``
-  ``xarray.DataArray`` objects with nodata as NaN. Dims are ``(y, x)`` for
-  one band, ``(band, y, x)`` otherwise. A scene in sensor geometry (no CRS:
-  raw images, and crops whose geotransform only holds a pixel offset) has
-  ``y``/``x`` coordinates equal to **pixel centres in the RPC/GDAL
-  convention of this array**: ``y[i] = i + 0.5``, ``x[j] = j + 0.5`` (the
-  top-left image corner is (0, 0)), so ``rpc.project`` output compares
-  directly with them. A crop's offset is *not* added: the camera returned
-  for a crop describes the crop. A georeferenced raster keeps its CRS
-  coordinates (cell centres).
-- The camera travels in ``attrs["rpc"]`` as GDAL's RPC metadata dict
-  (``str -> str``, see :meth:`tiledsm.geometry.RPC.to_gdal`), which survives
-  zarr attributes and GeoTIFF RPC tags; ``attrs["camera_source"]`` says where
-  it came from and ``attrs["source_path"]`` which file the pixels came from.
-- **Writes are atomic** (:func:`atomic_path`): every writer writes to a
-  hidden temporary sibling and renames it onto the final name only when the
-  write succeeded. A killed run leaves at most a hidden ``.NAME.tmp-*``
-  sibling, never a half-written product under the final name. Paths are
-  local (POSIX rename); object stores are not supported by the writers.
-- **Resumable stores** (:func:`create_store`, :class:`ChunkStore`,
-  :func:`write_blocks`): a stage's output grid is a zarr v3 store whose
-  chunks are the stage's blocks. Each dask task writes its own block and
-  then sets that block's completion marker; the client never gathers the
-  array. While incomplete the store lives at ``NAME.partial``; when every
-  marker is set :meth:`ChunkStore.finalize` renames it to ``NAME``.
-  Completion is tracked by the uint8 zarr array ``_progress/done`` of shape
-  ``numblocks`` with one zarr chunk per element (one file per block, so
-  concurrent tasks never write the same file); a marker is written only
-  after the block's data, so a task killed mid-write leaves its block
-  pending and it is recomputed on resume. xarray ignores the ``_progress``
-  sub-group when reading the store.
-"""
+"""Zarr stores: products written whole (:func:`write_zarr`) or block by block with resume
+(:func:`create_store`, :class:`ChunkStore`, :func:`write_blocks`, :func:`write_resumable`)."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
-import math
 import os
-import shutil
-import uuid
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator, Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import dask
 import numpy as np
-import rioxarray  # noqa: F401  (registers the .rio accessor used on every product)
+import rioxarray  # noqa: F401  (registers the .rio accessor)
 import xarray as xr
 
-from tiledsm.errors import GridError, InputFileError, RPCError, TiledsmError, UnsupportedFormatError
-from tiledsm.geometry.rpc import RPC
+from tiledsm.errors import GridError, InputFileError, TiledsmError
+from tiledsm.io.atomic import commit_path, remove_path, atomic_path
+from tiledsm.io.scenes import open_scene
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("tiledsm.io")
 
-__all__ = [
-    "open_scene",
-    "scene_rpc",
-    "atomic_path",
-    "write_zarr",
-    "open_product",
-    "write_cog",
-    "write_geotiff_with_rpc",
-    "ChunkStore",
-    "create_store",
-    "write_blocks",
-    "write_resumable",
-]
 
 #: dataset attribute naming the variable when a store holds one DataArray
 _DA_ATTR = "tiledsm_dataarray"
@@ -81,195 +29,6 @@ _UNNAMED = "__xarray_dataarray_variable__"
 #: dataset attribute describing a resumable store's layout
 _STORE_ATTR = "tiledsm_store"
 _PROGRESS = "_progress"
-
-
-# --------------------------------------------------------------------------- atomic
-def _remove(p: Path) -> None:
-    if p.is_dir() and not p.is_symlink():
-        shutil.rmtree(p, ignore_errors=True)
-    else:
-        with contextlib.suppress(FileNotFoundError):
-            p.unlink()
-
-
-def _tmp_sibling(final: Path, tag: str) -> Path:
-    return final.with_name(f".{final.name}.{tag}-{uuid.uuid4().hex[:10]}{final.suffix}")
-
-
-def _commit(tmp: Path, final: Path) -> None:
-    """Move ``tmp`` onto ``final``. Files: one atomic ``os.replace``.
-    Directories: the old one is first renamed aside, so ``final`` is at every
-    instant either the complete old or the complete new product (or absent
-    for the instant between the two renames)."""
-    if final.exists() and (final.is_dir() or tmp.is_dir()):
-        old = _tmp_sibling(final, "old")
-        os.rename(final, old)
-        os.rename(tmp, final)
-        _remove(old)
-    else:
-        os.replace(tmp, final)
-    side_tmp, side_final = Path(str(tmp) + ".aux.xml"), Path(str(final) + ".aux.xml")
-    if side_tmp.exists():
-        os.replace(side_tmp, side_final)
-    elif final.is_file():
-        with contextlib.suppress(FileNotFoundError):
-            side_final.unlink()  # stale GDAL sidecar of a previous product
-
-
-@contextlib.contextmanager
-def atomic_path(path: str | os.PathLike, overwrite: bool = True) -> Iterator[Path]:
-    """Write a file or directory atomically.
-
-    Yields a temporary sibling path (hidden, same suffix, same filesystem);
-    write the product there. On normal exit it is renamed onto ``path``
-    (replacing an existing product); on any exception it is deleted and the
-    exception propagates, leaving ``path`` untouched.
-
-    Parameters
-    ----------
-    path : path-like
-        Final product path (file or directory). Parent folders are created.
-    overwrite : bool
-        When False and ``path`` exists, raise :class:`TiledsmError` before
-        writing anything.
-
-    Examples
-    --------
-    >>> with atomic_path("out/dsm.tif") as tmp:          # doctest: +SKIP
-    ...     write_something(tmp)
-    """
-    final = Path(path)
-    if not overwrite and final.exists():
-        raise TiledsmError(f"{final}: already exists (refusing to overwrite)")
-    final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _tmp_sibling(final, "tmp")
-    try:
-        yield tmp
-        if not tmp.exists():
-            raise TiledsmError(f"{final}: the writer produced nothing at its temporary path {tmp}")
-        _commit(tmp, final)
-    except BaseException:
-        _remove(tmp)
-        _remove(Path(str(tmp) + ".aux.xml"))
-        raise
-
-
-# --------------------------------------------------------------------------- scenes
-def _find_camera(image_path: Path, rpc) -> tuple[RPC, str]:
-    """Camera of an image: :func:`tiledsm.geometry.rpc_io.find_camera`."""
-    if isinstance(rpc, RPC):
-        return rpc, rpc.source or "RPC object given"
-    from tiledsm.geometry.rpc_io import find_camera  # lazy: keeps tiledsm.io import light
-
-    return find_camera(image_path, rpc)
-
-
-def open_scene(
-    path: str | os.PathLike,
-    chunks: int | str | Mapping[str, int] = 1024,
-    rpc: "RPC | str | os.PathLike | None" = None,
-    band: int | None = None,
-    require_camera: bool = True,
-) -> xr.DataArray:
-    """Open an image lazily with its camera.
-
-    Parameters
-    ----------
-    path : path-like
-        Any raster GDAL reads (GeoTIFF, NITF, JP2...).
-    chunks : int, "auto" or dict
-        Dask chunk edge in pixels (``y`` and ``x``), or a dict per dim.
-        Bands are kept in one chunk.
-    rpc : RPC, path-like or None
-        Explicit camera: an :class:`RPC` or a file holding one. Default:
-        from the image itself or a same-stem sidecar (``.geom``, ``.RPB``,
-        ``_RPC.TXT``, ``.XML``), see ``tiledsm.geometry.rpc_io.find_camera``.
-    band : int, optional
-        1-based band to select (dims then ``(y, x)``).
-    require_camera : bool
-        When False, a raster without camera opens anyway (no ``rpc`` attr),
-        e.g. a DSM.
-
-    Returns
-    -------
-    xarray.DataArray
-        ``float32`` dask-backed, nodata as NaN, dims ``(y, x)`` or
-        ``(band, y, x)``; coordinates: see the module conventions. Attrs:
-        ``rpc`` (GDAL RPC dict), ``camera_source``, ``source_path``, plus the
-        file's own metadata tags.
-
-    Raises
-    ------
-    InputFileError
-        Missing or unreadable file (:class:`UnsupportedFormatError` when GDAL
-        does not recognise it).
-    RPCError
-        No camera found (when ``require_camera``) or a garbled one.
-    """
-    import rasterio
-    from affine import Affine
-    from rasterio.errors import NotGeoreferencedWarning
-
-    p = Path(path)
-    if not p.exists():
-        raise InputFileError(f"{p}: no such file")
-    if not p.is_file():
-        raise InputFileError(f"{p}: not a file")
-    ch = {"y": chunks, "x": chunks} if isinstance(chunks, (int, str)) else dict(chunks)
-    ch.setdefault("band", -1)
-    try:
-        with warnings.catch_warnings():  # sensor-geometry images have no geotransform by design
-            warnings.simplefilter("ignore", NotGeoreferencedWarning)
-            da = rioxarray.open_rasterio(p, chunks=ch, masked=True, mask_and_scale=True)
-    except rasterio.errors.RasterioIOError as exc:
-        msg = str(exc)
-        cls = UnsupportedFormatError if "not recognized" in msg or "supported file format" in msg else InputFileError
-        raise cls(f"{p}: cannot open as a raster ({msg})") from exc
-    if isinstance(da, list) or isinstance(da, xr.Dataset):
-        raise UnsupportedFormatError(f"{p}: holds several subdatasets; open one of them")
-    if band is not None:
-        if band not in da.band.values:
-            raise InputFileError(f"{p}: has no band {band} (bands {list(map(int, da.band.values))})")
-        da = da.sel(band=band, drop=True)
-    elif da.sizes["band"] == 1:
-        da = da.squeeze("band", drop=True)
-    if da.dtype != np.float32:
-        da = da.astype(np.float32)
-    attrs = {k: v for k, v in da.attrs.items() if k not in ("scale_factor", "add_offset", "_FillValue")}
-    if da.rio.crs is None:
-        ny, nx = da.sizes["y"], da.sizes["x"]
-        da = da.assign_coords(y=np.arange(ny) + 0.5, x=np.arange(nx) + 0.5)
-        da = da.rio.write_transform(Affine.identity())
-    try:
-        camera, desc = _find_camera(p, rpc)
-    except RPCError:
-        if rpc is not None or require_camera:
-            raise
-    else:
-        attrs["rpc"] = camera.to_gdal()
-        attrs["camera_source"] = desc
-    attrs["source_path"] = str(p.resolve())
-    da.attrs = attrs
-    da.encoding = {"source": str(p)}
-    da.name = da.name or p.stem
-    return da
-
-
-def scene_rpc(da: xr.DataArray) -> RPC:
-    """The camera stored in a scene's attrs (see :func:`open_scene`).
-
-    Raises
-    ------
-    RPCError
-        The DataArray carries no ``rpc`` attribute (message names its source).
-    """
-    md = da.attrs.get("rpc")
-    src = da.attrs.get("source_path") or da.name or "DataArray"
-    if md is None:
-        raise RPCError(f"{src}: no camera in attrs['rpc']")
-    if isinstance(md, str):  # flattened by a format that stores strings only
-        md = json.loads(md)
-    return RPC.from_gdal(md, source=str(da.attrs.get("camera_source") or src))
 
 
 # --------------------------------------------------------------------------- zarr
@@ -407,166 +166,6 @@ def open_product(
     return da
 
 
-# --------------------------------------------------------------------------- GeoTIFF
-def _tag_value(v) -> str:
-    if isinstance(v, str):
-        return v
-    if isinstance(v, (dict, list, tuple)):
-        return json.dumps(v)
-    if isinstance(v, np.generic):
-        return str(v.item())
-    return str(v)
-
-
-def _write_gtiff(
-    data,
-    path: Path,
-    *,
-    dtype,
-    nodata,
-    transform=None,
-    crs=None,
-    rpc: RPC | None = None,
-    tags: Mapping | None = None,
-    tiled: bool = True,
-    compress: str | None = "DEFLATE",
-    blocksize: int = 512,
-) -> None:
-    """Write a 2-D/3-D numpy or dask array to a GTiff, one dask block row at
-    a time (bounded memory: one strip of blocks)."""
-    import rasterio
-    from rasterio.errors import NotGeoreferencedWarning
-    from rasterio.rpc import RPC as RioRPC
-    from rasterio.windows import Window
-
-    arr = data
-    if arr.ndim == 2:
-        arr = arr[None]
-    if arr.ndim != 3:
-        raise ValueError(f"{path}: expected a 2-D (y, x) or 3-D (band, y, x) array, got shape {data.shape}")
-    nb, ny, nx = (int(s) for s in arr.shape)
-    profile = dict(driver="GTiff", width=nx, height=ny, count=nb, dtype=np.dtype(dtype).name, nodata=nodata)
-    if transform is not None:
-        profile["transform"] = transform
-    if crs is not None:
-        profile["crs"] = crs
-    if tiled and nx >= 16 and ny >= 16:
-        bs = max(16, min(int(blocksize), 1 << int(math.log2(max(min(nx, ny), 16)))) // 16 * 16)
-        profile.update(tiled=True, blockxsize=bs, blockysize=bs)
-    if compress:
-        profile["compress"] = compress
-    if nx * ny * nb * np.dtype(dtype).itemsize > 3_500_000_000:
-        profile["BIGTIFF"] = "YES"
-    is_dask = hasattr(arr, "dask")
-    steps = arr.chunks[1] if is_dask else (ny,)
-    with rasterio.Env(GDAL_PAM_ENABLED="NO"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", NotGeoreferencedWarning)
-        with rasterio.open(path, "w", **profile) as dst:
-            if rpc is not None:
-                dst.rpcs = RioRPC.from_gdal(rpc.to_gdal())
-            if tags:
-                dst.update_tags(**{str(k): _tag_value(v) for k, v in tags.items()})
-            r0 = 0
-            for h in steps:
-                block = np.asarray(arr[:, r0 : r0 + h, :].compute() if is_dask else arr[:, r0 : r0 + h, :])
-                dst.write(block.astype(dtype, copy=False), window=Window(0, r0, nx, h))
-                r0 += h
-
-
-def write_geotiff_with_rpc(
-    array,
-    path: str | os.PathLike,
-    rpc: RPC,
-    nodata: float | None = None,
-    dtype=None,
-    tags: Mapping | None = None,
-) -> Path:
-    """Write an image in sensor geometry as a GeoTIFF with RPC tags, atomically.
-
-    GDAL writes the RPC into the TIFF ``RPCCoefficientTag``, which GDAL,
-    rasterio (``src.rpcs``) and :func:`open_scene` read back.
-
-    Parameters
-    ----------
-    array : numpy or dask array, or DataArray
-        ``(y, x)`` or ``(band, y, x)``; dask arrays are written one block
-        row at a time.
-    path : path-like
-    rpc : RPC
-        Camera of this array (GDAL pixel convention).
-    nodata : float, optional
-        Nodata value stored in the file.
-    dtype : dtype, optional
-        Output dtype (default: the array's); values are cast (no rounding or
-        clipping is done: round before writing integers).
-    tags : mapping, optional
-        Extra GDAL metadata tags (values stringified; dicts as JSON).
-    """
-    data = array.data if isinstance(array, xr.DataArray) else array
-    dtype = np.dtype(dtype or data.dtype)
-    final = Path(path)
-    with atomic_path(final) as tmp:
-        _write_gtiff(data, tmp, dtype=dtype, nodata=nodata, rpc=rpc, tags=tags)
-    return final
-
-
-def write_cog(
-    da: xr.DataArray,
-    path: str | os.PathLike,
-    *,
-    dtype="float32",
-    nodata: float | None = float("nan"),
-    compress: str = "DEFLATE",
-    blocksize: int = 512,
-    resampling: str = "AVERAGE",
-) -> Path:
-    """Export a DataArray as a Cloud-Optimised GeoTIFF, atomically.
-
-    The data are streamed (one dask block row at a time) to a temporary
-    tiled GeoTIFF, then converted with GDAL's ``COG`` driver (overviews,
-    ``resampling``), and renamed onto ``path``.
-
-    Parameters
-    ----------
-    da : DataArray
-        ``(y, x)`` or ``(band, y, x)`` with rioxarray CRS/transform; in
-        sensor geometry (no CRS) a camera in ``attrs["rpc"]`` is written as
-        RPC tags.
-    path : path-like
-    dtype : dtype
-        Output dtype.
-    nodata : float or None
-        Nodata (NaN for float products).
-    compress, blocksize, resampling : str, int, str
-        COG creation options.
-    """
-    import rasterio
-    import rasterio.shutil
-    if da.ndim not in (2, 3) or da.dims[-2:] != ("y", "x"):
-        raise ValueError(f"write_cog: expected dims (y, x) or (band, y, x), got {da.dims}")
-    crs = da.rio.crs
-    transform = da.rio.transform() if crs is not None else None
-    rpc = scene_rpc(da) if (crs is None and "rpc" in da.attrs) else None
-    tags = {k: v for k, v in da.attrs.items() if k != "rpc"}
-    final = Path(path)
-    dt = np.dtype(dtype)
-    opts = dict(COMPRESS=compress, BLOCKSIZE=str(blocksize), OVERVIEW_RESAMPLING=resampling)
-    if compress.upper() in ("DEFLATE", "LZW", "ZSTD"):
-        opts["PREDICTOR"] = "FLOATING_POINT" if dt.kind == "f" else "YES"
-    with atomic_path(final) as tmp:
-        src = Path(str(tmp) + ".src.tif")
-        try:
-            _write_gtiff(
-                da.data, src, dtype=dt, nodata=nodata, transform=transform, crs=crs, rpc=rpc, tags=tags,
-                compress=None, blocksize=blocksize,
-            )
-            with rasterio.Env(GDAL_PAM_ENABLED="NO"):
-                rasterio.shutil.copy(src, tmp, driver="COG", **opts)
-        finally:
-            _remove(src)
-    return final
-
-
 # --------------------------------------------------------------------------- resumable stores
 @dataclass(frozen=True)
 class ChunkStore:
@@ -676,7 +275,7 @@ class ChunkStore:
         n = int((~self.done()).sum())
         if n:
             raise TiledsmError(f"{self.path}: cannot finalize, {n} blocks still pending")
-        _commit(self.partial_path, final)
+        commit_path(self.partial_path, final)
         return final
 
     def open(self, allow_incomplete: bool = True):
@@ -795,8 +394,8 @@ def create_store(
         return _layout(stored_attrs) == layout and _read_progress(p) is not None
 
     if overwrite:
-        _remove(partial)
-        _remove(final)
+        remove_path(partial)
+        remove_path(final)
     elif final.exists():
         if reusable(final):
             return store
@@ -804,7 +403,7 @@ def create_store(
     if partial.exists():
         if reusable(partial):
             return store
-        _remove(partial)
+        remove_path(partial)
 
     full_chunks = tuple(-1 for _ in dims[:-2]) + chunk
     data_vars = {

@@ -1,0 +1,85 @@
+"""Atomic writes: a product appears under its final name only when complete."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import uuid
+from pathlib import Path
+from typing import Iterator
+
+from tiledsm.errors import TiledsmError
+
+
+# --------------------------------------------------------------------------- atomic
+def remove_path(p: Path) -> None:
+    if p.is_dir() and not p.is_symlink():
+        shutil.rmtree(p, ignore_errors=True)
+    else:
+        with contextlib.suppress(FileNotFoundError):
+            p.unlink()
+
+
+def _tmp_sibling(final: Path, tag: str) -> Path:
+    return final.with_name(f".{final.name}.{tag}-{uuid.uuid4().hex[:10]}{final.suffix}")
+
+
+def commit_path(tmp: Path, final: Path) -> None:
+    """Move ``tmp`` onto ``final``. Files: one atomic ``os.replace``.
+    Directories: the old one is first renamed aside, so ``final`` is at every
+    instant either the complete old or the complete new product (or absent
+    for the instant between the two renames)."""
+    if final.exists() and (final.is_dir() or tmp.is_dir()):
+        old = _tmp_sibling(final, "old")
+        os.rename(final, old)
+        os.rename(tmp, final)
+        remove_path(old)
+    else:
+        os.replace(tmp, final)
+    side_tmp, side_final = Path(str(tmp) + ".aux.xml"), Path(str(final) + ".aux.xml")
+    if side_tmp.exists():
+        os.replace(side_tmp, side_final)
+    elif final.is_file():
+        with contextlib.suppress(FileNotFoundError):
+            side_final.unlink()  # stale GDAL sidecar of a previous product
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, overwrite: bool = True) -> Iterator[Path]:
+    """Write a file or directory atomically.
+
+    Yields a temporary sibling path (hidden, same suffix, same filesystem);
+    write the product there. On normal exit it is renamed onto ``path``
+    (replacing an existing product); on any exception it is deleted and the
+    exception propagates, leaving ``path`` untouched.
+
+    Parameters
+    ----------
+    path : path-like
+        Final product path (file or directory). Parent folders are created.
+    overwrite : bool
+        When False and ``path`` exists, raise :class:`TiledsmError` before
+        writing anything.
+
+    Examples
+    --------
+    >>> with atomic_path("out/dsm.tif") as tmp:          # doctest: +SKIP
+    ...     write_something(tmp)
+    """
+    final = Path(path)
+    if not overwrite and final.exists():
+        raise TiledsmError(f"{final}: already exists (refusing to overwrite)")
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp_sibling(final, "tmp")
+    try:
+        yield tmp
+        if not tmp.exists():
+            raise TiledsmError(f"{final}: the writer produced nothing at its temporary path {tmp}")
+        commit_path(tmp, final)
+    except BaseException:
+        remove_path(tmp)
+        remove_path(Path(str(tmp) + ".aux.xml"))
+        raise
+
+

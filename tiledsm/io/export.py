@@ -1,0 +1,180 @@
+"""GeoTIFF exports: cloud-optimised GeoTIFFs and rasters carrying RPC tags."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import warnings
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+import rioxarray  # noqa: F401  (registers the .rio accessor)
+import xarray as xr
+
+from tiledsm.geometry.rpc import RPC
+from tiledsm.io.atomic import remove_path, atomic_path
+from tiledsm.io.scenes import scene_rpc
+
+
+# --------------------------------------------------------------------------- GeoTIFF
+def _tag_value(v) -> str:
+    if isinstance(v, str):
+        return v
+    if isinstance(v, (dict, list, tuple)):
+        return json.dumps(v)
+    if isinstance(v, np.generic):
+        return str(v.item())
+    return str(v)
+
+
+def _write_gtiff(
+    data,
+    path: Path,
+    *,
+    dtype,
+    nodata,
+    transform=None,
+    crs=None,
+    rpc: RPC | None = None,
+    tags: Mapping | None = None,
+    tiled: bool = True,
+    compress: str | None = "DEFLATE",
+    blocksize: int = 512,
+) -> None:
+    """Write a 2-D/3-D numpy or dask array to a GTiff, one dask block row at
+    a time (bounded memory: one strip of blocks)."""
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning
+    from rasterio.rpc import RPC as RioRPC
+    from rasterio.windows import Window
+
+    arr = data
+    if arr.ndim == 2:
+        arr = arr[None]
+    if arr.ndim != 3:
+        raise ValueError(f"{path}: expected a 2-D (y, x) or 3-D (band, y, x) array, got shape {data.shape}")
+    nb, ny, nx = (int(s) for s in arr.shape)
+    profile = dict(driver="GTiff", width=nx, height=ny, count=nb, dtype=np.dtype(dtype).name, nodata=nodata)
+    if transform is not None:
+        profile["transform"] = transform
+    if crs is not None:
+        profile["crs"] = crs
+    if tiled and nx >= 16 and ny >= 16:
+        bs = max(16, min(int(blocksize), 1 << int(math.log2(max(min(nx, ny), 16)))) // 16 * 16)
+        profile.update(tiled=True, blockxsize=bs, blockysize=bs)
+    if compress:
+        profile["compress"] = compress
+    if nx * ny * nb * np.dtype(dtype).itemsize > 3_500_000_000:
+        profile["BIGTIFF"] = "YES"
+    is_dask = hasattr(arr, "dask")
+    steps = arr.chunks[1] if is_dask else (ny,)
+    with rasterio.Env(GDAL_PAM_ENABLED="NO"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        with rasterio.open(path, "w", **profile) as dst:
+            if rpc is not None:
+                dst.rpcs = RioRPC.from_gdal(rpc.to_gdal())
+            if tags:
+                dst.update_tags(**{str(k): _tag_value(v) for k, v in tags.items()})
+            r0 = 0
+            for h in steps:
+                block = np.asarray(arr[:, r0 : r0 + h, :].compute() if is_dask else arr[:, r0 : r0 + h, :])
+                dst.write(block.astype(dtype, copy=False), window=Window(0, r0, nx, h))
+                r0 += h
+
+
+def write_geotiff_with_rpc(
+    array,
+    path: str | os.PathLike,
+    rpc: RPC,
+    nodata: float | None = None,
+    dtype=None,
+    tags: Mapping | None = None,
+) -> Path:
+    """Write an image in sensor geometry as a GeoTIFF with RPC tags, atomically.
+
+    GDAL writes the RPC into the TIFF ``RPCCoefficientTag``, which GDAL,
+    rasterio (``src.rpcs``) and :func:`open_scene` read back.
+
+    Parameters
+    ----------
+    array : numpy or dask array, or DataArray
+        ``(y, x)`` or ``(band, y, x)``; dask arrays are written one block
+        row at a time.
+    path : path-like
+    rpc : RPC
+        Camera of this array (GDAL pixel convention).
+    nodata : float, optional
+        Nodata value stored in the file.
+    dtype : dtype, optional
+        Output dtype (default: the array's); values are cast (no rounding or
+        clipping is done: round before writing integers).
+    tags : mapping, optional
+        Extra GDAL metadata tags (values stringified; dicts as JSON).
+    """
+    data = array.data if isinstance(array, xr.DataArray) else array
+    dtype = np.dtype(dtype or data.dtype)
+    final = Path(path)
+    with atomic_path(final) as tmp:
+        _write_gtiff(data, tmp, dtype=dtype, nodata=nodata, rpc=rpc, tags=tags)
+    return final
+
+
+def write_cog(
+    da: xr.DataArray,
+    path: str | os.PathLike,
+    *,
+    dtype="float32",
+    nodata: float | None = float("nan"),
+    compress: str = "DEFLATE",
+    blocksize: int = 512,
+    resampling: str = "AVERAGE",
+) -> Path:
+    """Export a DataArray as a Cloud-Optimised GeoTIFF, atomically.
+
+    The data are streamed (one dask block row at a time) to a temporary
+    tiled GeoTIFF, then converted with GDAL's ``COG`` driver (overviews,
+    ``resampling``), and renamed onto ``path``.
+
+    Parameters
+    ----------
+    da : DataArray
+        ``(y, x)`` or ``(band, y, x)`` with rioxarray CRS/transform; in
+        sensor geometry (no CRS) a camera in ``attrs["rpc"]`` is written as
+        RPC tags.
+    path : path-like
+    dtype : dtype
+        Output dtype.
+    nodata : float or None
+        Nodata (NaN for float products).
+    compress, blocksize, resampling : str, int, str
+        COG creation options.
+    """
+    import rasterio
+    import rasterio.shutil
+    if da.ndim not in (2, 3) or da.dims[-2:] != ("y", "x"):
+        raise ValueError(f"write_cog: expected dims (y, x) or (band, y, x), got {da.dims}")
+    crs = da.rio.crs
+    transform = da.rio.transform() if crs is not None else None
+    rpc = scene_rpc(da) if (crs is None and "rpc" in da.attrs) else None
+    tags = {k: v for k, v in da.attrs.items() if k != "rpc"}
+    final = Path(path)
+    dt = np.dtype(dtype)
+    opts = dict(COMPRESS=compress, BLOCKSIZE=str(blocksize), OVERVIEW_RESAMPLING=resampling)
+    if compress.upper() in ("DEFLATE", "LZW", "ZSTD"):
+        opts["PREDICTOR"] = "FLOATING_POINT" if dt.kind == "f" else "YES"
+    with atomic_path(final) as tmp:
+        src = Path(str(tmp) + ".src.tif")
+        try:
+            _write_gtiff(
+                da.data, src, dtype=dt, nodata=nodata, transform=transform, crs=crs, rpc=rpc, tags=tags,
+                compress=None, blocksize=blocksize,
+            )
+            with rasterio.Env(GDAL_PAM_ENABLED="NO"):
+                rasterio.shutil.copy(src, tmp, driver="COG", **opts)
+        finally:
+            remove_path(src)
+    return final
+
+
