@@ -14,13 +14,14 @@ from tests.conftest import require_shared
 from tiledsm.errors import GridError, NoOverlapError
 from tiledsm.geometry import RPC
 from tiledsm.geometry.footprint import (
+    grid_for_footprint,
     ground_polygon,
     image_window,
     overlap_lonlat_bounds,
     overlap_polygon,
     polygon_area,
 )
-from tiledsm.geometry.grid import GroundGrid, grid_for_footprint
+from tiledsm.geometry.grid import GroundGrid
 
 H_RANGE = (2270.0, 2380.0)
 

@@ -16,7 +16,8 @@ from tests.conftest import require_shared
 from tiledsm.errors import GridError, InputFileError
 from tiledsm.geometry import RPC
 from tiledsm.geometry.footprint import ground_polygon
-from tiledsm.geometry.grid import GroundGrid, grid_for_footprint, utm_crs
+from tiledsm.geometry.footprint import grid_for_footprint
+from tiledsm.geometry.grid import GroundGrid, utm_crs
 
 
 def _grid() -> GroundGrid:

@@ -2,6 +2,7 @@
 
 from tiledsm.geometry.fit import FitReport, fit_rpc, fit_rpc_report
 from tiledsm.geometry.footprint import (
+    grid_for_footprint,
     ground_polygon,
     image_window,
     overlap_lonlat_bounds,
@@ -9,7 +10,7 @@ from tiledsm.geometry.footprint import (
     polygon_area,
 )
 from tiledsm.geometry.geoid import ellipsoid_to_geoid, geoid_height, geoid_to_ellipsoid
-from tiledsm.geometry.grid import GroundGrid, grid_for_footprint, utm_crs
+from tiledsm.geometry.grid import GroundGrid, utm_crs
 from tiledsm.geometry.rpc import RPC
 from tiledsm.geometry.rpc_io import find_camera, read_rpc
 

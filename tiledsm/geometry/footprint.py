@@ -23,9 +23,9 @@ from pyproj import Transformer
 from scipy.spatial import ConvexHull
 
 from tiledsm.errors import GridError, NoOverlapError
+from tiledsm.geometry.grid import DEFAULT_CHUNK, GroundGrid, check_height_range, utm_crs
 
 if TYPE_CHECKING:  # pragma: no cover
-    from tiledsm.geometry.grid import GroundGrid
     from tiledsm.geometry.rpc import RPC
 
 __all__ = [
@@ -35,6 +35,7 @@ __all__ = [
     "overlap_polygon",
     "polygon_area",
     "to_lonlat",
+    "grid_for_footprint",
 ]
 
 _local = threading.local()
@@ -105,9 +106,7 @@ def image_window(
     Visibility is decided before the margin is added: a tile whose
     projection misses the image is ``None`` even if its margin would touch it.
     """
-    from tiledsm.geometry.grid import _check_h_range
-
-    hmin, hmax = _check_h_range(h_range)
+    hmin, hmax = check_height_range(h_range)
     left, bottom, right, top = grid.bounds
     ys, xs = _rect_boundary(top, bottom, left, right, max(int(n_per_side), 1))
     lon, lat = to_lonlat(grid.crs, xs, ys)
@@ -183,9 +182,7 @@ def overlap_lonlat_bounds(
     NoOverlapError
         The boxes are disjoint.
     """
-    from tiledsm.geometry.grid import _check_h_range
-
-    hmin, hmax = _check_h_range(h_range)
+    hmin, hmax = check_height_range(h_range)
     b = []
     for rpc, shape in ((rpc1, shape1), (rpc2, shape2)):
         poly = np.concatenate([ground_polygon(rpc, shape, h) for h in (hmin, hmax)])
@@ -272,3 +269,45 @@ def overlap_polygon(
         names = " and ".join(r.source or f"image {k + 1}" for k, r in enumerate((rpc1, rpc2)))
         raise NoOverlapError(f"{names} see no common ground at height {h} m")
     return out
+
+
+def grid_for_footprint(
+    rpc,
+    image_shape: tuple[int, int],
+    h_range: tuple[float, float],
+    resolution: float,
+    crs: str | None = None,
+    chunk: int = DEFAULT_CHUNK,
+) -> GroundGrid:
+    """A ground grid covering everything an image can see in a height range.
+
+    The image boundary is localised at the lowest and highest height; the
+    grid is the bounding box of those polygons in ``crs`` snapped outward
+    (:meth:`GroundGrid.from_bounds`).
+
+    Parameters
+    ----------
+    rpc : RPC
+        Camera of the image.
+    image_shape : (rows, cols)
+        Image size, pixels.
+    h_range : (hmin, hmax)
+        Ellipsoidal heights, metres.
+    resolution : float
+        Cell edge, metres.
+    crs : str, optional
+        Output CRS; default the UTM zone of the footprint centre.
+    chunk : int
+        Chunk edge, cells.
+    """
+    from pyproj import Transformer
+
+    hmin, hmax = check_height_range(h_range)
+    polys = np.concatenate([ground_polygon(rpc, image_shape, h) for h in (hmin, hmax)])
+    if crs is None:
+        lon_c = 0.5 * (polys[:, 0].min() + polys[:, 0].max())
+        lat_c = 0.5 * (polys[:, 1].min() + polys[:, 1].max())
+        crs = utm_crs(lon_c, lat_c)
+    tr = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+    x, y = tr.transform(polys[:, 0], polys[:, 1])
+    return GroundGrid.from_bounds(crs, (x.min(), y.min(), x.max(), y.max()), resolution, chunk)

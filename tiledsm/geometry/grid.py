@@ -28,7 +28,7 @@ from pyproj.exceptions import CRSError
 
 from tiledsm.errors import GridError, InputFileError
 
-__all__ = ["GroundGrid", "utm_crs", "grid_for_footprint", "DEFAULT_CHUNK"]
+__all__ = ["GroundGrid", "utm_crs", "check_height_range", "DEFAULT_CHUNK"]
 
 #: default chunk edge, cells
 DEFAULT_CHUNK = 512
@@ -305,51 +305,9 @@ def utm_crs(lon: float, lat: float) -> str:
     return f"EPSG:{code}"
 
 
-def grid_for_footprint(
-    rpc,
-    image_shape: tuple[int, int],
-    h_range: tuple[float, float],
-    resolution: float,
-    crs: str | None = None,
-    chunk: int = DEFAULT_CHUNK,
-) -> GroundGrid:
-    """A ground grid covering everything an image can see in a height range.
-
-    The image boundary is localised at the lowest and highest height; the
-    grid is the bounding box of those polygons in ``crs`` snapped outward
-    (:meth:`GroundGrid.from_bounds`).
-
-    Parameters
-    ----------
-    rpc : RPC
-        Camera of the image.
-    image_shape : (rows, cols)
-        Image size, pixels.
-    h_range : (hmin, hmax)
-        Ellipsoidal heights, metres.
-    resolution : float
-        Cell edge, metres.
-    crs : str, optional
-        Output CRS; default the UTM zone of the footprint centre.
-    chunk : int
-        Chunk edge, cells.
-    """
-    from pyproj import Transformer
-
-    from tiledsm.geometry.footprint import ground_polygon
-
-    hmin, hmax = _check_h_range(h_range)
-    polys = np.concatenate([ground_polygon(rpc, image_shape, h) for h in (hmin, hmax)])
-    if crs is None:
-        lon_c = 0.5 * (polys[:, 0].min() + polys[:, 0].max())
-        lat_c = 0.5 * (polys[:, 1].min() + polys[:, 1].max())
-        crs = utm_crs(lon_c, lat_c)
-    tr = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
-    x, y = tr.transform(polys[:, 0], polys[:, 1])
-    return GroundGrid.from_bounds(crs, (x.min(), y.min(), x.max(), y.max()), resolution, chunk)
-
-
-def _check_h_range(h_range) -> tuple[float, float]:
+def check_height_range(h_range) -> tuple[float, float]:
+    """``(hmin, hmax)`` as floats (ellipsoidal metres), finite and ordered;
+    :class:`~tiledsm.errors.GridError` otherwise."""
     try:
         hmin, hmax = (float(h) for h in h_range)
     except (TypeError, ValueError) as exc:
