@@ -489,6 +489,7 @@ def test_relative_out_on_an_external_cluster(scene, tmp_path):
 EMITTERS = {
     "tiledsm/provenance.py": ("dsm", "run"),
     "tiledsm/io/stores.py": ("dsm", "run"),
+    "tiledsm/recipes.py:load_cluster": ("dsm", "run", "sr", "compare"),
     "tiledsm/io/atomic.py": ("dsm", "run"),
     "tiledsm/sr/registry.py": ("sr",),
     "tiledsm/cli/sr.py": ("sr",),

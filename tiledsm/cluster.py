@@ -1,11 +1,16 @@
-"""Where dask runs: a local cluster by default, or an existing scheduler.
+"""Where dask runs: a local cluster by default, an existing scheduler, or
+jobs of a batch system.
 
 Default: a :class:`distributed.LocalCluster` with one single-threaded worker
 process per core, so numba, OpenCV and torch each use one thread inside a
 task and tasks never oversubscribe the cores. ``scheduler="tcp://host:8786"``
-runs the same graph on an existing cluster (dask-jobqueue, dask-kubernetes,
-``dask scheduler`` + ``dask worker``). ``scheduler="synchronous"`` runs in
-the calling thread (tests, debugging).
+runs the same graph on an existing cluster (dask-kubernetes, ``dask
+scheduler`` + ``dask worker``). ``scheduler="synchronous"`` runs in the
+calling thread (tests, debugging). ``jobqueue=JobQueueConfig("slurm", ...)``
+starts the workers as SLURM, PBS or SGE jobs through dask-jobqueue (the
+scheduler runs in the calling process, typically on a login node; jobs are
+submitted adaptively between ``minimum_jobs`` and ``maximum_jobs``), each
+job running ``processes`` single-threaded workers.
 """
 
 from __future__ import annotations
@@ -17,7 +22,19 @@ from typing import Iterator
 
 import dask
 
-__all__ = ["ClusterConfig", "compute_context", "shared_cluster", "single_threaded_libraries"]
+__all__ = [
+    "ClusterConfig",
+    "JobQueueConfig",
+    "JOBQUEUE_KINDS",
+    "compute_context",
+    "jobqueue_cluster",
+    "job_script",
+    "shared_cluster",
+    "single_threaded_libraries",
+]
+
+#: batch systems and their dask-jobqueue cluster class
+JOBQUEUE_KINDS = {"slurm": "SLURMCluster", "pbs": "PBSCluster", "sge": "SGECluster"}
 
 #: environment that keeps native libraries to one thread inside a task
 SINGLE_THREAD_ENV = {
@@ -26,6 +43,96 @@ SINGLE_THREAD_ENV = {
     "OPENBLAS_NUM_THREADS": "1",
     "NUMBA_NUM_THREADS": "1",
 }
+
+
+@dataclass(frozen=True)
+class JobQueueConfig:
+    """Workers as jobs of a batch system (dask-jobqueue).
+
+    Attributes
+    ----------
+    kind : str
+        ``"slurm"``, ``"pbs"`` or ``"sge"`` (:data:`JOBQUEUE_KINDS`).
+    cores : int
+        Cores per job; the job runs ``processes`` workers of
+        ``cores / processes`` threads each (default: ``cores``
+        single-threaded workers, as on a local cluster; fewer processes
+        give each worker more memory).
+    memory : str
+        Memory per job (dask syntax, e.g. ``"32GiB"``); each worker's limit
+        is ``memory / processes``, and dask stops a worker that exceeds it
+        rather than letting the node swap.
+    walltime : str
+        Job time limit, ``HH:MM:SS``.
+    queue, account : str or None
+        Partition/queue and project to charge.
+    processes : int or None
+        Workers per job (default ``cores``).
+    job_extra_directives : tuple of str
+        Extra scheduler directives, e.g. ``("--constraint=skylake",)``.
+    minimum_jobs, maximum_jobs : int
+        Bounds of the adaptive job count.
+    local_directory : str or None
+        Worker scratch space on the node (e.g. ``"$TMPDIR"``).
+    interface : str or None
+        Network interface of the workers (e.g. ``"ib0"``).
+    python : str or None
+        Python on the nodes (default: the one running tiledsm).
+    """
+
+    kind: str
+    cores: int = 1
+    memory: str = "4GiB"
+    walltime: str = "01:00:00"
+    queue: str | None = None
+    account: str | None = None
+    processes: int | None = None
+    job_extra_directives: tuple[str, ...] = ()
+    minimum_jobs: int = 1
+    maximum_jobs: int = 1
+    local_directory: str | None = None
+    interface: str | None = None
+    python: str | None = None
+
+    def __post_init__(self) -> None:
+        from tiledsm.errors import InvalidOptionError
+
+        if self.kind not in JOBQUEUE_KINDS:
+            raise InvalidOptionError(f"cluster kind {self.kind!r}: expected one of {sorted(JOBQUEUE_KINDS)}")
+        if self.cores < 1 or (self.processes is not None and not 1 <= self.processes <= self.cores):
+            raise InvalidOptionError(
+                f"cluster: cores must be >= 1 and processes between 1 and cores, got cores={self.cores}, "
+                f"processes={self.processes}"
+            )
+        if not 0 <= self.minimum_jobs <= self.maximum_jobs or self.maximum_jobs < 1:
+            raise InvalidOptionError(
+                f"cluster: need 0 <= minimum_jobs <= maximum_jobs and maximum_jobs >= 1, got "
+                f"{self.minimum_jobs}..{self.maximum_jobs}"
+            )
+
+    def cluster_kwargs(self) -> dict:
+        """Keyword arguments of the dask-jobqueue cluster class."""
+        import sys
+
+        kw = dict(
+            cores=self.cores,
+            processes=self.processes or self.cores,
+            memory=self.memory,
+            walltime=self.walltime,
+            queue=self.queue,
+            account=self.account,
+            job_extra_directives=list(self.job_extra_directives),
+            # one thread per worker: native libraries too, set before the worker starts
+            job_script_prologue=[f"export {k}={v}" for k, v in SINGLE_THREAD_ENV.items()],
+            python=self.python or sys.executable,
+            local_directory=self.local_directory,
+            interface=self.interface,
+            scheduler_options={"dashboard_address": ":0"},  # a free port: no clash with another cluster
+        )
+        if self.kind == "sge":
+            kw.pop("account")  # SGE has projects, set through job_extra_directives ("-P name")
+            kw["resource_spec"] = f"h_vmem={self.memory}"
+        return {k: v for k, v in kw.items() if v is not None}
 
 
 @dataclass(frozen=True)
@@ -43,12 +150,40 @@ class ClusterConfig:
         Per-worker memory limit of a local cluster (dask syntax).
     progress : bool
         Show a progress bar.
+    jobqueue : JobQueueConfig or None
+        Start the workers as batch jobs instead (``scheduler`` must then
+        be ``None``).
     """
 
     scheduler: str | None = None
     workers: int | None = None
     memory_limit: str = "auto"
     progress: bool = True
+    jobqueue: JobQueueConfig | None = None
+
+    def __post_init__(self) -> None:
+        if self.jobqueue is not None and self.scheduler is not None:
+            from tiledsm.errors import InvalidOptionError
+
+            raise InvalidOptionError(
+                f"cluster: a {self.jobqueue.kind} cluster starts its own scheduler; do not also give "
+                f"a scheduler ({self.scheduler!r})"
+            )
+
+
+def jobqueue_cluster(config: JobQueueConfig):
+    """The dask-jobqueue cluster of ``config`` (its scheduler starts in this
+    process; no job is submitted until it is scaled)."""
+    import dask_jobqueue
+
+    cls = getattr(dask_jobqueue, JOBQUEUE_KINDS[config.kind])
+    return cls(**config.cluster_kwargs())
+
+
+def job_script(config: JobQueueConfig) -> str:
+    """The batch script one job of ``config`` would be submitted with."""
+    with jobqueue_cluster(config) as cluster:
+        return cluster.job_script()
 
 
 def single_threaded_libraries() -> None:
@@ -79,6 +214,12 @@ def compute_context(config: ClusterConfig = ClusterConfig()) -> Iterator[object 
         return
     from distributed import Client, LocalCluster
 
+    if config.jobqueue is not None:
+        jq = config.jobqueue
+        with jobqueue_cluster(jq) as cluster, Client(cluster) as client:
+            cluster.adapt(minimum_jobs=jq.minimum_jobs, maximum_jobs=jq.maximum_jobs)
+            yield client
+        return
     if config.scheduler:
         with Client(config.scheduler) as client:
             client.run(single_threaded_libraries)
@@ -111,7 +252,7 @@ def shared_cluster(config: ClusterConfig = ClusterConfig()) -> Iterator[ClusterC
     import dataclasses
 
     with compute_context(config) as client:
-        yield dataclasses.replace(config, scheduler=client.scheduler.address)
+        yield dataclasses.replace(config, scheduler=client.scheduler.address, jobqueue=None)
 
 
 def compute_with_progress(*collections, config: ClusterConfig = ClusterConfig(), client=None):

@@ -218,7 +218,7 @@ def run_dsm(
     """
     from tiledsm.plan import LOW_COMPLETENESS, Limits, plan_recipe
 
-    cluster = cluster or ClusterConfig(scheduler=recipe.cluster.scheduler, workers=recipe.cluster.workers)
+    cluster = cluster or recipe.cluster.config()
     t_start = time.perf_counter()
     inp = recipe.input
     truth_mask = None

@@ -137,9 +137,86 @@ def dsm_params(grid: GridSpec, match: MatchSpec, *, resolution: float | None = N
     )
 
 
+class JobQueueSpec(_Strict):
+    """Resources of one batch job (see :class:`tiledsm.cluster.JobQueueConfig`)."""
+
+    cores: int = Field(1, ge=1, description="cores per job: 'processes' workers (default: one per core) of cores/processes threads")
+    memory: str = Field("4GiB", description="memory per job, e.g. 32GiB; each worker gets memory / processes")
+    walltime: str = Field("01:00:00", pattern=r"^\d+:\d{2}:\d{2}$", description="HH:MM:SS")
+    queue: Optional[str] = None
+    account: Optional[str] = None
+    processes: Optional[int] = Field(None, ge=1)
+    job_extra_directives: list[str] = Field(default_factory=list)
+    minimum_jobs: int = Field(1, ge=0)
+    maximum_jobs: int = Field(1, ge=1)
+    local_directory: Optional[str] = None
+    interface: Optional[str] = None
+    python: Optional[str] = None
+
+
 class ClusterSpec(_Strict):
+    """Where the run computes: ``kind: local`` (default: ``workers``
+    single-threaded processes), ``kind: address`` (an existing scheduler at
+    ``address``), or ``kind: slurm|pbs|sge`` (workers as batch jobs with the
+    resources of ``jobqueue``, through dask-jobqueue). ``scheduler`` is the
+    older spelling: an address, or ``synchronous``."""
+
+    kind: Literal["local", "address", "slurm", "pbs", "sge"] = "local"
+    address: Optional[str] = Field(None, description="kind address: tcp://host:port")
     scheduler: Optional[str] = Field(None, description="None: local cluster; 'synchronous'; or tcp://host:port")
     workers: Optional[int] = Field(None, ge=1)
+    jobqueue: Optional[JobQueueSpec] = None
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        if self.kind == "address" and not self.address:
+            raise ValueError("kind address needs 'address: tcp://host:port'")
+        if self.address and self.kind != "address":
+            raise ValueError(f"'address' is for kind address, not {self.kind}")
+        if self.kind in ("slurm", "pbs", "sge"):
+            if self.scheduler:
+                raise ValueError(f"a {self.kind} cluster starts its own scheduler: drop 'scheduler'")
+            if self.workers is not None:
+                raise ValueError(f"a {self.kind} cluster sizes itself from 'jobqueue' (cores, processes, jobs): drop 'workers'")
+        elif self.jobqueue is not None:
+            raise ValueError(f"'jobqueue' is for kind slurm, pbs or sge, not {self.kind}")
+        return self
+
+    def config(self, progress: bool = True):
+        """The :class:`~tiledsm.cluster.ClusterConfig` of this section."""
+        from tiledsm.cluster import ClusterConfig, JobQueueConfig
+
+        if self.kind in ("slurm", "pbs", "sge"):
+            jq = (self.jobqueue or JobQueueSpec()).model_dump()
+            jq["job_extra_directives"] = tuple(jq["job_extra_directives"])
+            return ClusterConfig(jobqueue=JobQueueConfig(kind=self.kind, **jq), progress=progress)
+        return ClusterConfig(scheduler=self.address or self.scheduler, workers=self.workers, progress=progress)
+
+
+def load_cluster(path: str | Path) -> ClusterSpec:
+    """The ``cluster`` section kept in its own YAML file (``--cluster
+    FILE``): either the section's fields, or a mapping with a ``cluster``
+    key (a whole recipe works too).
+
+    Raises
+    ------
+    RecipeError
+    """
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise RecipeError(f"{path}: --cluster: cannot read ({exc.strerror})") from exc
+    except yaml.YAMLError as exc:
+        raise RecipeError(f"{path}: --cluster: not valid YAML ({exc})") from exc
+    if isinstance(data, dict) and "cluster" in data:
+        data = data["cluster"]
+    if not isinstance(data, dict):
+        raise RecipeError(f"{path}: --cluster: expected a mapping of cluster fields, got {type(data).__name__}")
+    try:
+        return ClusterSpec.model_validate(data)
+    except ValidationError as exc:
+        raise RecipeError(_format_errors(path, exc).replace("invalid recipe", "invalid cluster file")) from None
 
 
 class OutputSpec(_Strict):

@@ -12,7 +12,12 @@ __all__ = [
 
 
 def add_cluster_arguments(p: argparse.ArgumentParser) -> None:
-    """``--scheduler`` and ``--workers``, shared by every computing command."""
+    """``--cluster``, ``--scheduler`` and ``--workers``, shared by every computing command."""
+    p.add_argument(
+        "--cluster", default=None, metavar="FILE",
+        help="YAML file with a recipe's 'cluster' section (kind: local | address | slurm | pbs | sge, "
+        "with 'jobqueue' resources for batch systems); --scheduler and --workers override it",
+    )
     p.add_argument("--scheduler", default=None, help="dask scheduler address (tcp://host:8786) or 'synchronous'; default: a local cluster")
     p.add_argument("--workers", type=int, default=None, help="local workers (one single-threaded process each, >= 1); default: one per core")
     p.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
@@ -49,9 +54,26 @@ def cluster_config(args: argparse.Namespace, recipe_cluster=None):
     from tiledsm.plan import check_workers
 
     check_workers(args.workers, "--workers")
-    scheduler = args.scheduler or (recipe_cluster.scheduler if recipe_cluster else None)
-    workers = args.workers if args.workers is not None else (recipe_cluster.workers if recipe_cluster else None)
-    return ClusterConfig(scheduler=scheduler, workers=workers, progress=not args.no_progress)
+    if getattr(args, "cluster", None):
+        from tiledsm.recipes import load_cluster
+
+        recipe_cluster = load_cluster(args.cluster)
+    progress = not args.no_progress
+    if args.scheduler is None and args.workers is None and recipe_cluster is not None:
+        return recipe_cluster.config(progress)
+    if recipe_cluster is not None and recipe_cluster.kind in ("slurm", "pbs", "sge"):
+        from tiledsm.errors import InvalidOptionError
+
+        raise InvalidOptionError(
+            f"--scheduler/--workers: the run's cluster is a {recipe_cluster.kind} cluster (from --cluster or the recipe); "
+            "give one or the other"
+        )
+    base = recipe_cluster.config(progress) if recipe_cluster is not None else ClusterConfig(progress=progress)
+    return ClusterConfig(
+        scheduler=args.scheduler or base.scheduler,
+        workers=args.workers if args.workers is not None else base.workers,
+        progress=progress,
+    )
 
 
 def print_warnings(command: str, messages) -> None:

@@ -220,6 +220,14 @@ def check_workers(workers: int | None, name: str = "--workers") -> None:
 def describe_cluster(config) -> str:
     """Where a :class:`~tiledsm.cluster.ClusterConfig` computes, in words
     (nothing is started or contacted)."""
+    if config is not None and getattr(config, "jobqueue", None) is not None:
+        jq = config.jobqueue
+        n = jq.processes or jq.cores
+        return (
+            f"{jq.kind} jobs (dask-jobqueue): {jq.minimum_jobs}..{jq.maximum_jobs} jobs of {jq.cores} cores, "
+            f"{jq.memory}, {jq.walltime}, {n} single-threaded workers each"
+            + (f", queue {jq.queue}" if jq.queue else "") + (f", account {jq.account}" if jq.account else "")
+        )
     if config is None or config.scheduler is None:
         import psutil
 

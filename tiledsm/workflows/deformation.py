@@ -420,7 +420,7 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
     NoStableTerrainError
         The exclusion polygons leave no stable terrain for the fit.
     """
-    from tiledsm.cluster import ClusterConfig, compute_context, shared_cluster
+    from tiledsm.cluster import compute_context, shared_cluster
     from tiledsm.compare import CompareParams, compare_dsms
     from tiledsm.dsm import dsm_from_pair
     from tiledsm.geometry.grid import GroundGrid
@@ -428,7 +428,7 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
     from tiledsm.pipelines import _write_json, write_dsm_products
     from tiledsm.recipes import grid_from_spec
 
-    cluster = cluster or ClusterConfig(scheduler=recipe.cluster.scheduler, workers=recipe.cluster.workers)
+    cluster = cluster or recipe.cluster.config()
     t_start = time.perf_counter()
     timings: dict = {}
     inp, g = recipe.input, recipe.grid

@@ -596,7 +596,7 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
     from tiledsm.synth.degrade import degrade
 
     out = Path(out)
-    cluster = cluster or ClusterConfig(scheduler=recipe.cluster.scheduler, workers=recipe.cluster.workers)
+    cluster = cluster or recipe.cluster.config()
     sr = recipe.sr
     s = sr.scale
     border = s if sr.border is None else sr.border
