@@ -489,6 +489,11 @@ def test_relative_out_on_an_external_cluster(scene, tmp_path):
 EMITTERS = {
     "tiledsm/provenance.py": ("dsm", "run"),
     "tiledsm/io/stores.py": ("dsm", "run"),
+    "tiledsm/cli/synth.py": ("synth",),
+    "tiledsm/cli/orient.py": ("orient",),
+    "tiledsm/orient/stage.py": ("orient",),
+    "tiledsm/cli/ortho.py": ("ortho",),
+    "tiledsm/ortho/stage.py": ("ortho",),
     "tiledsm/recipes.py:load_cluster": ("dsm", "run", "sr", "compare"),
     "tiledsm/io/atomic.py": ("dsm", "run"),
     "tiledsm/sr/registry.py": ("sr",),

@@ -271,11 +271,11 @@ def register_recipe(name: str, model: type[BaseModel]) -> None:
 
 
 def _format_errors(path: Path, exc: ValidationError) -> str:
-    lines = []
+    parts = []
     for err in exc.errors():
         loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
-        lines.append(f"  {loc}: {err['msg']}")
-    return f"{path}: invalid recipe\n" + "\n".join(lines)
+        parts.append(f"{loc}: {err['msg']}")
+    return f"{path}: invalid recipe: " + "; ".join(parts)
 
 
 def load_recipe(path: str | Path, overrides: dict[str, Any] | None = None) -> BaseModel:

@@ -55,8 +55,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
+    from pathlib import Path
+
+    from tiledsm.errors import InvalidOptionError
     from tiledsm.synth import RadiometryParams, TowerParams, make_scene
 
+    if args.size < 16:
+        raise InvalidOptionError(f"--size: need at least 16 pixels, got {args.size}")
+    if not args.gsd > 0:
+        raise InvalidOptionError(f"--gsd: must be positive, got {args.gsd}")
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        raise InvalidOptionError(f"{Path(args.out).resolve()}: OUT is a file, expected a folder")
     rad = RadiometryParams()
     if args.psf_sigma is not None:
         rad = replace(rad, psf_sigma=args.psf_sigma)

@@ -73,6 +73,7 @@ def geoid_height(lon, lat, grid_path: str | Path) -> np.ndarray:
     ny, nx = grid.shape
     x = (lon - lon0) / dlon
     y = (lat0 - lat) / dlat
+    outside_lat = (y < -1e-9) | (y > ny - 1 + 1e-9)
     y = np.clip(y, 0, ny - 1)
     if wraps:
         x = np.mod(x, nx)
@@ -89,7 +90,7 @@ def geoid_height(lon, lat, grid_path: str | Path) -> np.ndarray:
          + fy * ((1 - fx) * grid[i0 + 1, j0] + fx * grid[i0 + 1, j1]))
     if not wraps:
         n = np.where(out, np.nan, n)
-    return n
+    return np.where(outside_lat, np.nan, n)
 
 
 def geoid_to_ellipsoid(lon, lat, h, grid_path: str | Path) -> np.ndarray:

@@ -211,6 +211,29 @@ def existing_file(path: str | os.PathLike, name: str) -> str:
     return str(p)
 
 
+def readable_raster(path: str, name: str) -> str:
+    """``path`` (absolute, as :func:`existing_file` returns it) after reading
+    the last row of every band: a truncated or corrupt raster (whose header
+    opens but whose pixels do not) is refused now, naming ``name``, rather
+    than inside a task. Cheap: one row of blocks."""
+    import rasterio
+    from rasterio.windows import Window
+
+    try:
+        with rasterio.open(path) as src:
+            src.read(window=Window(0, src.height - 1, src.width, 1))
+    except rasterio.errors.RasterioError as exc:
+        raise InputFileError(f"{path}: {name}: cannot read its pixels ({_root_message(exc)})") from None
+    return path
+
+
+def _root_message(exc: BaseException) -> str:
+    """The GDAL message behind rasterio's "See previous exception"."""
+    while exc.__context__ is not None and "previous exception" in str(exc):
+        exc = exc.__context__
+    return str(exc)
+
+
 def check_workers(workers: int | None, name: str = "--workers") -> None:
     """Refuse a worker count below 1 (a cluster without workers waits forever)."""
     if workers is not None and int(workers) < 1:
@@ -262,6 +285,8 @@ def new_plan(command: str, out: str | os.PathLike, cluster=None, *, limits: Limi
     ``folder``, no live run holding it (:meth:`tiledsm.provenance.OutputLock.check`)."""
     out = Path(out).expanduser().resolve()
     check_workers(getattr(cluster, "workers", None), workers)
+    if folder and out.exists() and not out.is_dir():
+        raise InvalidOptionError(f"{out}: --out: is a file, expected a folder (new or from an earlier run)")
     if folder and out.is_dir():
         from tiledsm.provenance import OutputLock
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 from pathlib import Path
 from typing import Sequence
@@ -13,7 +14,22 @@ from tiledsm.errors import (
     NoOverlapError,
     TiledsmError,
 )
-from tiledsm.plan.core import FieldNames, InputInfo, Limits, MOSTLY_OUTSIDE, Plan, PreparedDSM, RECIPE_NAMES, format_bounds, memory_warning, overlap_fraction, raster_header, existing_file, seen_fraction
+from tiledsm.plan.core import (
+    MOSTLY_OUTSIDE,
+    RECIPE_NAMES,
+    FieldNames,
+    InputInfo,
+    Limits,
+    Plan,
+    PreparedDSM,
+    existing_file,
+    format_bounds,
+    memory_warning,
+    overlap_fraction,
+    raster_header,
+    readable_raster,
+    seen_fraction,
+)
 from tiledsm.plan.memory import dsm_levels
 
 
@@ -35,10 +51,54 @@ def _explicit_grid(spec, names: FieldNames, like: str | None):
     from tiledsm.geometry.grid import GroundGrid
 
     if like:
-        return GroundGrid.like(like, chunk=spec.chunk), f"{names.like} {like}"
+        try:
+            return GroundGrid.like(like, chunk=spec.chunk), f"{names.like} {like}"
+        except TiledsmError as exc:
+            raise type(exc)(f"{names.like}: {exc}") from None
     if spec.bounds:
         return GroundGrid.from_bounds(spec.crs, spec.bounds, spec.resolution, chunk=spec.chunk), names.bounds
     return None, names.resolution
+
+
+@contextlib.contextmanager
+def _naming(images: Sequence[str]):
+    """Matching failures of the scene as a whole (no tie points, no
+    parallax, heights outside the RPCs' range) name its images."""
+    try:
+        yield
+    except MatchingError as exc:
+        if any(str(i) in str(exc) for i in images):
+            raise
+        raise type(exc)(f"{', '.join(map(str, images))}: {exc}") from None
+
+
+def _check_crs(crs: str, name: str) -> None:
+    """Refuse a CRS that pyproj does not know, naming the option."""
+    from pyproj import CRS
+    from pyproj.exceptions import CRSError
+
+    try:
+        CRS.from_user_input(crs)
+    except CRSError as exc:
+        raise InvalidOptionError(f"{name} {crs}: not a known CRS ({exc})") from None
+
+
+def _check_geoid_covers(geoid: str, grid, name: str) -> None:
+    """Refuse a geoid grid that has no undulation at the DSM grid's corners
+    and centre (a regional grid of another area)."""
+    import numpy as np
+
+    from tiledsm.geometry.footprint import to_lonlat
+    from tiledsm.geometry.geoid import geoid_height
+
+    x = np.array([grid.x[0], grid.x[-1], grid.x[0], grid.x[-1], grid.x[len(grid.x) // 2]])
+    y = np.array([grid.y[0], grid.y[0], grid.y[-1], grid.y[-1], grid.y[len(grid.y) // 2]])
+    lon, lat = to_lonlat(grid.crs, x, y)
+    if not np.isfinite(geoid_height(lon, lat, geoid)).all():
+        raise InvalidOptionError(
+            f"{geoid}: {name}: the geoid grid does not cover the DSM grid (lon {lon.min():.4f}..{lon.max():.4f}, "
+            f"lat {lat.min():.4f}..{lat.max():.4f})"
+        )
 
 
 def grid_text(grid) -> str:
@@ -125,7 +185,7 @@ def plan_dsm(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names
                           f"{out / 'scene'}; its grid, graph and memory are planned then")
         plan.reuse = "decided once the scene is made: a DSM store in the folder is resumed if its fingerprint matches"
         return plan
-    images = [existing_file(p, names.images) for p in inp.images]
+    images = [readable_raster(existing_file(p, names.images), names.images) for p in inp.images]
     rpcs = [None if r is None else existing_file(r, names.rpcs) for r in inp.rpcs] if inp.rpcs else None
     reference = existing_file(inp.reference, names.reference) if inp.reference else None
     like = existing_file(spec.like, names.like) if spec.like else None
@@ -135,6 +195,8 @@ def plan_dsm(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names
         source = (v.rpc.source or "?").replace(v.path, "").strip(" ()") or v.rpc.source
         plan.inputs.append(InputInfo(names.images, v.path, f"{v.shape[0]} x {v.shape[1]} px, camera: {source}"))
     params = _dsm_params(recipe, names)
+    if spec.crs:
+        _check_crs(spec.crs, names.crs)
     if params.height_range is not None and not params.height_range[0] < params.height_range[1]:
         raise InvalidOptionError(f"{names.height_range}: HMIN must be below HMAX, got {list(params.height_range)}")
     grid, what = _explicit_grid(spec, names, like)
@@ -144,14 +206,16 @@ def plan_dsm(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names
         _check_grid_size(grid, limits, what, names)
     from tiledsm.dsm import prepare_views
 
-    h_range, views, report = prepare_views(views, params)
+    with _naming(images):
+        h_range, views, report = prepare_views(views, params)
     plan.height_range = h_range
     if "tiepoint_height_range_m" in report:
         _check_given_range(plan, h_range, report["tiepoint_height_range_m"], names.height_range)
     if grid is None:
         from tiledsm.dsm import default_grid
 
-        grid = default_grid(views, h_range, params)
+        with _naming(images):
+            grid = default_grid(views, h_range, params)
         what = f"{names.resolution} {grid.resolution:g}" if spec.resolution else "the default grid"
         _check_grid_size(grid, limits, what, names)
     report["grid"] = {"crs": grid.crs, "resolution": grid.resolution, "width": grid.width, "height": grid.height,
@@ -161,8 +225,10 @@ def plan_dsm(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names
     if reference:
         _check_reference(plan, reference, grid, names.reference)
     if geoid:
+        _check_geoid_covers(geoid, grid, names.geoid)
         plan.inputs.append(InputInfo(names.geoid, geoid))
-    ds = dsm_from_views(views, grid, h_range, params)
+    with _naming(images):
+        ds = dsm_from_views(views, grid, h_range, params)
     if geoid:
         ds = heights_above_geoid(ds, geoid)
         report["vertical_datum"] = ds.attrs["vertical_datum"]

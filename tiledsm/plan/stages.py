@@ -11,7 +11,7 @@ from tiledsm.errors import (
     InvalidOptionError,
     NoOverlapError,
 )
-from tiledsm.plan.core import InputInfo, Plan, format_bounds, overlap_fraction, raster_header, existing_file, new_plan
+from tiledsm.plan.core import InputInfo, Plan, existing_file, format_bounds, new_plan, overlap_fraction, raster_header, readable_raster
 from tiledsm.plan.dsm import grid_text, refuse_or_warn
 from tiledsm.plan.recipes import polygons_touch, check_sr_weights
 
@@ -51,7 +51,7 @@ def plan_sr(
         raise InvalidOptionError(f"{out}: OUTPUT: must end in .tif/.tiff or .zarr")
     if not out.parent.is_dir():
         raise InputFileError(f"{out}: OUTPUT: folder {out.parent} does not exist")
-    src = existing_file(image, "INPUT")
+    src = readable_raster(existing_file(image, "INPUT"), "INPUT")
     scene = open_scene(src, chunks=chunk)
     bit_depth = sr_options.pop("bit_depth", None)
     if bit_depth is not None:
