@@ -1,4 +1,4 @@
-"""Quick-look PNGs of DSMs and difference maps (matplotlib ``Figure`` objects
+"""Quick-look PNGs of DSMs, difference maps and images (orthoimages) (matplotlib ``Figure`` objects
 rendered by Agg: no pyplot, no display, no global backend change).
 
 Conventions
@@ -23,7 +23,7 @@ from tiledsm.io import atomic_path
 __all__ = ["hillshade", "quicklook", "KINDS"]
 
 #: supported quick-look kinds
-KINDS = ("height", "difference")
+KINDS = ("height", "difference", "image")
 
 #: colour of cells with no value
 NAN_COLOUR = (0.85, 0.25, 0.85, 1.0)
@@ -131,7 +131,9 @@ def quicklook(
         ``"height"``: hillshade blended with a terrain colour map, colour bar
         in metres. ``"difference"``: diverging colour map with symmetric
         limits ``+-P`` where ``P`` is the ``percentile`` of ``|da|``, over
-        the hillshade of ``dsm`` when given.
+        the hillshade of ``dsm`` when given. ``"image"``: grey levels
+        (digital numbers) stretched between the ``100 - percentile`` and
+        ``percentile`` percentiles.
     title : str, optional
     dsm : DataArray, optional
         Heights on the same grid, shaded under a difference map.
@@ -169,6 +171,12 @@ def quicklook(
         ax.imshow(rgba, extent=extent, interpolation="nearest")
         mappable = ScalarMappable(norm=Normalize(lo, hi), cmap=cmap)
         label = "height (m)"
+    elif kind == "image":
+        lo, hi = (np.nanpercentile(z, [100 - percentile, percentile]) if finite.any() else (0.0, 1.0))
+        hi = hi if hi > lo else lo + 1.0
+        cmap = colormaps["gray"].with_extremes(bad=NAN_COLOUR)
+        mappable = ax.imshow(np.ma.masked_invalid(z), cmap=cmap, vmin=lo, vmax=hi, extent=extent, interpolation="nearest")
+        label = "digital number"
     else:
         if dsm is not None:
             h, (hy, hx) = _reduce(dsm, max_size)

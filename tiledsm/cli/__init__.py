@@ -24,6 +24,8 @@ COMMAND_MODULES = (
     "tiledsm.cli.compare",
     "tiledsm.cli.run",
     "tiledsm.cli.dsm",
+    "tiledsm.cli.ortho",
+    "tiledsm.cli.orient",
 )
 
 

@@ -1,0 +1,10 @@
+"""Orthoimages: interpolation kernels (NN/BL/CR/CS), tiled orthorectification
+of any image (RPC or frame camera) on a DSM, with occlusion.
+
+Public API: :data:`KERNELS`, :func:`get_kernel`, :func:`sample` (kernels);
+:func:`orthorectify` and :class:`OrthoParams` (:mod:`tiledsm.ortho.rectify`).
+"""
+
+from tiledsm.ortho.kernels import KERNELS, Kernel, get_kernel, register_kernel, sample
+
+__all__ = ["KERNELS", "Kernel", "get_kernel", "register_kernel", "sample"]
