@@ -69,16 +69,42 @@ def test_crop_then_scale_matches_gdal_window(img01, tmp_path):
 
 
 def test_with_affine_exact_shift_and_scale(img01):
+    """Fraser & Hanley: l + A0 + A1 l + A2 s = r, s + B0 + B1 l + B2 s = c;
+    with A2 = B1 = 0 only offsets and scales change."""
     rpc, shape = img01
-    a, b = (3.2, 0.0, 1e-4), (-7.5, -2e-4, 0.0)
+    a, b = (3.2, 1e-4, 0.0), (-7.5, 0.0, -2e-4)
     fixed = rpc.with_affine(a, b)
     lon, lat, h = _ground(rpc, shape)
     r, c = rpc.project(lon, lat, h)
-    rf, cf = fixed.project(lon, lat, h)
-    np.testing.assert_allclose(rf, r + a[0] + a[2] * r, atol=1e-9)
-    np.testing.assert_allclose(cf, c + b[0] + b[1] * c, atol=1e-9)
+    l, s = fixed.project(lon, lat, h)
+    np.testing.assert_allclose(l + a[0] + a[1] * l + a[2] * s, r, atol=1e-9)
+    np.testing.assert_allclose(s + b[0] + b[1] * l + b[2] * s, c, atol=1e-9)
     # the exact path keeps the coefficients
     np.testing.assert_array_equal(fixed.line_num, rpc.line_num)
+
+
+def test_with_affine_projects_gcps_onto_measured_positions(img01):
+    """Regression (issue 10: A1/A2 swapped, sign reversed): a biased RPC,
+    A0..B2 estimated from 6 GCPs by the model's own linear equations, folded
+    back: the corrected RPC lands on the measured GCP positions."""
+    rpc, shape = img01
+    truth = rpc
+    lon, lat, h = _ground(rpc, shape, n=6, seed=3)
+    l, s = truth.project(lon, lat, h)  # measured GCP positions
+    biased = truth.with_affine((-2.5, -1.5e-4, 2e-4), (4.0, 1e-4, 3e-4), image_shape=shape, h_range=(2000, 2600))
+    r, c = biased.project(lon, lat, h)
+    assert np.max(np.hypot(r - l, c - s)) > 2.0  # the bias is real
+    design = np.column_stack([np.ones_like(l), l, s])
+    a = np.linalg.lstsq(design, r - l, rcond=None)[0]
+    b = np.linalg.lstsq(design, c - s, rcond=None)[0]
+    fixed = biased.with_affine(a, b, image_shape=shape, h_range=(2000, 2600))
+    lf, sf = fixed.project(lon, lat, h)
+    assert np.max(np.hypot(lf - l, sf - s)) < 0.02
+    # and the correction reproduces the true camera away from the GCPs
+    lon2, lat2, h2 = _ground(rpc, shape, n=200, seed=4)
+    lt, st = truth.project(lon2, lat2, h2)
+    lf2, sf2 = fixed.project(lon2, lat2, h2)
+    assert np.max(np.hypot(lf2 - lt, sf2 - st)) < 0.02
 
 
 def test_with_affine_identity_roundtrip(img01):

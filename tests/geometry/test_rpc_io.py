@@ -295,3 +295,77 @@ def test_ventoux_left_right_offset_with_srtm_and_egm96():
     assert abs(dr - (-321)) < 6 and abs(dc - 80) < 6
     dr0, dc0 = offset(False)
     assert np.hypot(dr0 - dr, dc0 - dc) > 20
+
+
+# ----------------------------------------------------------------- writers
+def _tiny_raster(path: Path, shape=(24, 32)) -> Path:
+    data = np.arange(shape[0] * shape[1], dtype=np.uint16).reshape(shape)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with rasterio.open(path, "w", driver="GTiff", width=shape[1], height=shape[0], count=1,
+                           dtype="uint16") as ds:
+            ds.write(data, 1)
+    return path
+
+
+def _wv3_rpc():
+    return read_rpc(require_shared("rpc_models", "rpcm", "rpc_WV3.xml"))
+
+
+def _gdal_agrees(path: Path, rpc: RPC, n: int = 50) -> None:
+    """rasterio reads back exactly ``rpc`` and its RPC transformer projects
+    like :meth:`RPC.project` (1e-3 px: GDAL's own iteration tolerance)."""
+    from tiledsm.geometry import rpc_io
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with rasterio.open(path) as ds:
+            got = RPC.from_gdal(ds.rpcs.to_dict())
+            with RPCTransformer(ds.rpcs) as tr:
+                rng = np.random.default_rng(0)
+                h = rng.uniform(rpc.height_off - 50, rpc.height_off + 50, n)
+                lon, lat = rpc.localize(rng.uniform(0, 2000, n), rng.uniform(0, 2000, n), h)
+                gr, gc = tr.rowcol(lon, lat, zs=h, op=lambda x: x)
+    assert got == rpc
+    r, c = rpc.project(lon, lat, h)
+    np.testing.assert_allclose(np.asarray(gr), r, atol=1e-3)
+    np.testing.assert_allclose(np.asarray(gc), c, atol=1e-3)
+    assert rpc_io.format_rpc_txt(got) == rpc_io.format_rpc_txt(rpc)
+
+
+def test_rpc_txt_written_is_read_by_gdal_and_by_us(tmp_path):
+    from tiledsm.geometry.rpc_io import rpc_txt_path, write_rpc_txt
+
+    rpc = _wv3_rpc().cropped(10.5, -3.25)
+    img = _tiny_raster(tmp_path / "scene.tif")
+    side = write_rpc_txt(rpc, rpc_txt_path(img))
+    assert side.name == "scene_RPC.TXT"
+    _gdal_agrees(img, rpc)
+    assert read_rpc(side) == rpc
+    assert "txt" in read_rpc(side).source
+    cam, origin = find_camera(img)
+    assert cam == rpc and "sidecar" in origin
+
+
+def test_rpc_tags_written_on_an_open_geotiff(tmp_path):
+    from tiledsm.geometry.rpc_io import write_rpc_tags
+
+    rpc = _wv3_rpc()
+    img = _tiny_raster(tmp_path / "scene.tif")
+    write_rpc_tags(img, rpc)
+    assert not (tmp_path / "scene.RPB").exists()  # inside the file, no sidecar
+    _gdal_agrees(img, rpc)
+    write_rpc_tags(img, rpc.cropped(5, 5))  # replaced, not appended
+    _gdal_agrees(img, rpc.cropped(5, 5))
+
+
+def test_rpc_tags_refuse_non_geotiff(tmp_path):
+    from tiledsm.geometry.rpc_io import write_rpc_tags
+
+    p = tmp_path / "x.png"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with rasterio.open(p, "w", driver="PNG", width=8, height=8, count=1, dtype="uint8") as ds:
+            ds.write(np.zeros((1, 8, 8), np.uint8))
+    with pytest.raises(InputFileError, match="x.png"):
+        write_rpc_tags(p, _wv3_rpc())

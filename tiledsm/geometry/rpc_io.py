@@ -36,7 +36,10 @@ import numpy as np
 from tiledsm.errors import InputFileError, RPCError, UnsupportedFormatError
 from tiledsm.geometry.rpc import RPC
 
-__all__ = ["read_rpc", "find_camera", "detect_format", "READERS", "SIDECAR_SUFFIXES"]
+__all__ = [
+    "read_rpc", "find_camera", "detect_format", "READERS", "SIDECAR_SUFFIXES",
+    "format_rpc_txt", "write_rpc_txt", "write_rpc_tags", "rpc_txt_path",
+]
 
 Reader = Callable[[Path, str], RPC]
 
@@ -378,6 +381,77 @@ def read_rpc(path: str | Path) -> RPC:
         raise
     except ET.ParseError as exc:  # pragma: no cover - detect_format parsed it already
         raise UnsupportedFormatError(f"{path}: malformed XML ({exc})") from exc
+
+
+# -------------------------------------------------------------------- writers
+#: units GDAL appends in its ``_RPC.TXT`` files (read back by GDAL and by :func:`read_rpc`)
+_TXT_UNITS = {
+    "LINE_OFF": "pixels", "SAMP_OFF": "pixels", "LAT_OFF": "degrees", "LONG_OFF": "degrees",
+    "HEIGHT_OFF": "meters", "LINE_SCALE": "pixels", "SAMP_SCALE": "pixels", "LAT_SCALE": "degrees",
+    "LONG_SCALE": "degrees", "HEIGHT_SCALE": "meters",
+}
+
+
+def format_rpc_txt(rpc: RPC) -> str:
+    """GDAL's ``_RPC.TXT`` text of an RPC (``KEY: value unit`` lines, the
+    coefficients as ``LINE_NUM_COEFF_1`` .. ``_20``), values at full double
+    precision. Offsets follow the RPC standard (first pixel centre at 0), as
+    GDAL expects."""
+    md = rpc.to_gdal()
+    lines = [f"{k}: {md[k]} {_TXT_UNITS[k]}" for k in _GDAL_KEYS]
+    for key in _COEFF:
+        lines += [f"{key}_{i}: {v}" for i, v in enumerate(md[key].split(), start=1)]
+    return "\n".join(lines) + "\n"
+
+
+def rpc_txt_path(image_path: str | Path) -> Path:
+    """Where GDAL looks for an image's RPC text sidecar: ``<stem>_RPC.TXT``
+    beside it."""
+    p = Path(image_path)
+    return p.with_name(p.stem + "_RPC.TXT")
+
+
+def write_rpc_txt(rpc: RPC, path: str | Path) -> Path:
+    """Write ``rpc`` as a GDAL ``_RPC.TXT`` file (atomically: a temporary
+    sibling renamed into place). GDAL reads it as the camera of a raster
+    ``<stem>.<ext>`` in the same folder when the file is named
+    :func:`rpc_txt_path` of that raster.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(format_rpc_txt(rpc))
+    tmp.replace(path)
+    return path
+
+
+def write_rpc_tags(path: str | Path, rpc: RPC) -> None:
+    """Set the RPC of an existing GeoTIFF (opened ``r+`` by rasterio, which
+    GDAL stores in the TIFF ``RPCCoefficientTag``), replacing any RPC it had.
+
+    Raises
+    ------
+    InputFileError
+        ``path`` is not a GeoTIFF GDAL can update.
+    """
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
+    from rasterio.rpc import RPC as RioRPC
+
+    path = Path(path)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.Env(GDAL_PAM_ENABLED="NO"), rasterio.open(path, "r+") as ds:
+                if ds.driver != "GTiff":
+                    raise InputFileError(f"{path}: RPC tags need a GeoTIFF, got a {ds.driver} raster")
+                ds.rpcs = RioRPC.from_gdal(rpc.to_gdal())
+    except RasterioIOError as exc:
+        raise InputFileError(f"{path}: cannot open for update ({exc})") from exc
 
 
 def crop_offset(image_path: str | Path) -> tuple[float, float] | None:

@@ -1,0 +1,57 @@
+"""Fixtures of the orientation tests: synthetic cameras with injected
+biases (no rendering) and a small rendered scene."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tiledsm.orient.simulate import inject_bias, pushbroom_rpcs
+
+SIZE = 1024
+H_RANGE = (200.0, 400.0)
+#: injected (A, B) per view: 3 px shifts, 1e-4 scale/shear
+BIASES = (
+    ((3.0, 1e-4, -1e-4), (-2.0, 1e-4, 1e-4)),
+    ((-3.0, -1e-4, 1e-4), (3.0, 1e-4, -1e-4)),
+    ((2.0, 1e-4, 1e-4), (2.0, -1e-4, 1e-4)),
+)
+
+
+@pytest.fixture(scope="session")
+def cameras3():
+    """(true RPCs, biased RPCs) of 3 synthetic pushbroom views."""
+    true = pushbroom_rpcs(3, SIZE, h_range=H_RANGE)
+    biased = [inject_bias(r, a, b, (SIZE, SIZE), H_RANGE) for r, (a, b) in zip(true, BIASES)]
+    return true, biased
+
+
+@pytest.fixture(scope="session")
+def scene2(tmp_path_factory):
+    """A rendered 512-px 2-view scene with 1 px shifts injected into
+    biased copies, and the true cameras."""
+    from tiledsm.geometry import find_camera
+    from tiledsm.orient.simulate import biased_copies
+    from tiledsm.synth import make_scene
+
+    root = tmp_path_factory.mktemp("orient_scene")
+    info = make_scene(root / "scene", size=512, views=2, seed=4, chunk=256, workers=1)
+    true = [find_camera(p)[0] for p in info.views]
+    h = (true[0].height_off - true[0].height_scale, true[0].height_off + true[0].height_scale)
+    biased = biased_copies(info.views, true, BIASES[:2], root / "biased", h)
+    return info, true, biased, h, root
+
+
+def relative_error(rpcs, true, lon, lat, h) -> float:
+    """RMS reprojection residual (px) of the *true* correspondences of
+    ground points intersected with ``rpcs``: 0 when the cameras agree with
+    each other (whatever their common absolute error)."""
+    from tiledsm.orient.adjust import intersect
+    from tiledsm.orient.simulate import project_all
+
+    p = project_all(true, lon, lat, h)
+    v, n = p.shape[:2]
+    img = np.repeat(np.arange(v), n)
+    pt = np.tile(np.arange(n), v)
+    _, res = intersect(rpcs, img, pt, p[:, :, 0].ravel(), p[:, :, 1].ravel(), n)
+    return float(np.sqrt(np.mean(np.sum(res**2, axis=1))))

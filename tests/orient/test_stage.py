@@ -1,0 +1,121 @@
+"""``tiledsm orient`` end to end on a rendered synthetic pair with injected
+biases: products, GDAL reading them back, accuracy at check points, bad
+inputs, a blunder GCP reported by id, and ``tiledsm dsm`` on the output."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+import rasterio
+
+from tiledsm.cli import main
+from tiledsm.geometry import RPC, find_camera
+from tiledsm.orient.simulate import corner_points, ground_points, write_points_csv
+
+
+@pytest.fixture(scope="module")
+def points(scene2):
+    info, true, biased, h, root = scene2
+    names = [p.name for p in biased]
+    gl, ga, gh = corner_points(true[0], (512, 512), (300, 400), seed=1)
+    write_points_csv(root / "gcps.csv", names, true, gl, ga, gh, noise_px=0.05, shape=(512, 512))
+    cl, ca, ch = ground_points(true[0], (512, 512), (300, 400), 20, seed=2)
+    write_points_csv(root / "checks.csv", names, true, cl, ca, ch, prefix="c", shape=(512, 512))
+    return root / "gcps.csv", root / "checks.csv"
+
+
+@pytest.fixture(scope="module")
+def oriented(scene2, points, tmp_path_factory):
+    info, true, biased, h, root = scene2
+    out = tmp_path_factory.mktemp("orient_out")
+    rc = main(["orient", *map(str, biased), "--gcps", str(points[0]), "--check-points", str(points[1]),
+               "--out", str(out), "--tile", "256", "--workers", "1"])
+    assert rc == 0
+    return out, json.loads((out / "orient.json").read_text())
+
+
+def test_products_and_accuracy(scene2, oriented):
+    info, true, biased, h, root = scene2
+    out, doc = oriented
+    for v in ("view_0", "view_1"):
+        for f in (f"{v}.tif", f"{v}_RPC.TXT"):
+            assert (out / f).is_file()
+    assert (out / "residuals.png").stat().st_size > 10_000 and (out / "residuals.csv").is_file()
+    print(json.dumps({k: doc[k] for k in ("gcp_rms_px", "check_rms_px", "tie_relative_rms_px")}))
+    assert doc["check_rms_px"]["before"] > 2.5
+    assert doc["check_rms_px"]["after"] < 0.1
+    assert doc["tie_relative_rms_px"]["after"] < 0.2 < doc["tie_relative_rms_px"]["before"]
+    assert [d["model"] for d in doc["images"]] == ["affine", "affine"]
+    # GDAL reads the corrected camera (sidecar first, tags hold the same) and it matches the truth
+    lon, lat, hh = ground_points(true[0], (512, 512), (300, 400), 200, seed=5)
+    for i, v in enumerate(("view_0", "view_1")):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with rasterio.open(out / f"{v}.tif") as ds:
+                gdal_rpc = RPC.from_gdal(ds.rpcs.to_dict())
+                assert ds.read(1).tobytes() == rasterio.open(biased[i]).read(1).tobytes()
+        cam, origin = find_camera(out / f"{v}.tif")
+        assert cam == gdal_rpc and "sidecar" in origin
+        d = np.stack(cam.project(lon, lat, hh), -1) - np.stack(true[i].project(lon, lat, hh), -1)
+        assert np.sqrt(np.mean(np.sum(d**2, axis=1))) < 0.1
+
+
+@pytest.mark.slow
+def test_dsm_accepts_corrected_images(scene2, oriented, tmp_path):
+    """``tiledsm dsm`` on the corrected copies: the pair needs no relative
+    correction any more (< 0.05 px) and the DSM sits on the truth."""
+    info, true, biased, h, root = scene2
+    out, _ = oriented
+    rc = main(["dsm", str(out / "view_0.tif"), str(out / "view_1.tif"), "--out", str(tmp_path / "dsm"),
+               "--like", str(info.truth_dsm), "--scheduler", "synchronous", "--no-progress"])
+    assert rc == 0
+    m = json.loads((tmp_path / "dsm" / "metrics.json").read_text())
+    corr = m["report"]["relative_correction_view1_px"]
+    assert abs(corr["drow"]) < 0.05 and abs(corr["dcol"]) < 0.05
+    with rasterio.open(tmp_path / "dsm" / "dsm.tif") as a, rasterio.open(info.truth_dsm) as b, \
+            rasterio.open(info.visible_mask) as v:
+        d = (a.read(1) - b.read(1))[v.read(1) == 1]
+    med = float(np.nanmedian(d))
+    print("DSM - truth median", med)
+    assert abs(med) < 0.2
+
+
+def test_too_few_gcps_for_the_model(scene2, tmp_path, capsys):
+    info, true, biased, h, root = scene2
+    lines = (root / "gcps.csv").read_text().splitlines()
+    two = tmp_path / "two.csv"
+    two.write_text("\n".join([lines[0]] + [ln for ln in lines[1:] if ln.split(",")[0] in ("g0", "g1")]) + "\n")
+    rc = main(["orient", *map(str, biased), "--gcps", str(two), "--model", "affine", "--out", str(tmp_path / "o"),
+               "--no-tie-points"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "needs at least 3 GCP measurement(s) per image" in err and "view_0.tif has 2" in err
+
+
+def test_gcp_outside_image_is_refused(scene2, tmp_path, capsys):
+    info, true, biased, h, root = scene2
+    bad = tmp_path / "bad.csv"
+    bad.write_text("id,image,lon,lat,h,row,col\nq,view_1.tif,5.2,44.2,300,600.5,10\n")
+    rc = main(["orient", *map(str, biased), "--gcps", str(bad), "--out", str(tmp_path / "o")])
+    assert rc == 2 and "point 'q' at row 600.5, col 10 lies outside view_1.tif (512 x 512" in capsys.readouterr().err
+
+
+def test_blunder_gcp_reported(scene2, points, tmp_path):
+    info, true, biased, h, root = scene2
+    lines = points[0].read_text().splitlines()
+    out = [lines[0]]
+    for ln in lines[1:]:
+        f = ln.split(",")
+        if f[0] == "g2" and f[1] == "view_1.tif":
+            f[5] = repr(float(f[5]) + 12.0)  # 12 px blunder
+        out.append(",".join(f))
+    gcps = tmp_path / "blunder.csv"
+    gcps.write_text("\n".join(out) + "\n")
+    rc = main(["orient", *map(str, biased), "--gcps", str(gcps), "--check-points", str(points[1]),
+               "--out", str(tmp_path / "o"), "--tile", "256", "--workers", "1"])
+    doc = json.loads((tmp_path / "o" / "orient.json").read_text())
+    assert rc == 0 and doc["rejected_gcps"] == ["g2"]
+    assert "g2@view_1.tif" in doc["rejected_measurements"]
+    assert doc["check_rms_px"]["after"] < 0.15

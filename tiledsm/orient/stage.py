@@ -1,0 +1,379 @@
+"""The orientation stage: tie points, GCPs, reference DEM -> bias-corrected
+RPCs, written beside copies of the images, with a residual report.
+
+Steps (:func:`orient_images`): find every image's camera; read GCPs and
+check points; multi-view tie-point tracks (:mod:`tiledsm.orient.tracks`,
+P2L-filtered); one block adjustment (:mod:`tiledsm.orient.adjust`) with a
+bias model per image (:mod:`tiledsm.orient.bias`); fold each image's
+correction into its RPC (:meth:`tiledsm.geometry.rpc.RPC.with_affine`);
+residuals before and after at GCPs, check points (held out of the fit) and
+tie points. :func:`write_orientation` writes the products.
+
+Conventions: pixel coordinates GDAL (top-left image corner at (0, 0)),
+lon/lat WGS84 degrees, heights metres above the WGS84 ellipsoid.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import warnings
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from tiledsm.errors import InvalidOptionError, MatchingError
+from tiledsm.geometry.rpc import RPC
+from tiledsm.orient.adjust import AdjustParams, AdjustResult, Block, adjust_block, intersect
+from tiledsm.orient.bias import TERMS, BiasModel, choose_model, get_model
+from tiledsm.orient.points import ControlPoints, read_points
+from tiledsm.orient.tracks import Tracks, TrackParams, tie_point_tracks
+
+__all__ = ["OrientParams", "Orientation", "orient_images", "write_orientation", "residual_rms"]
+
+
+@dataclass(frozen=True)
+class OrientParams:
+    """Parameters of :func:`orient_images`.
+
+    Attributes
+    ----------
+    model : str or None
+        Bias model of every image (``"shift"``, ``"affine"``); None chooses
+        per image by point count (:func:`~tiledsm.orient.bias.choose_model`).
+    tie_points : bool
+        Extract tie points (needs >= 2 images).
+    tie_sigma_px, gcp_sigma_px : float
+        Standard deviations of tie-point and GCP image measurements, pixels.
+    gcp_sigma_m : float
+        Standard deviation of GCP ground coordinates, metres.
+    refit_max_error_px : float
+        Tolerance of the corrected RPC's refit (affine models), pixels.
+    tracks, adjust : TrackParams, AdjustParams
+    """
+
+    model: str | None = None
+    tie_points: bool = True
+    tie_sigma_px: float = 0.3
+    gcp_sigma_px: float = 0.3
+    gcp_sigma_m: float = 0.1
+    refit_max_error_px: float = 0.01
+    tracks: TrackParams = TrackParams()
+    adjust: AdjustParams = AdjustParams()
+
+
+@dataclass(frozen=True)
+class Orientation:
+    """Outcome of :func:`orient_images` (everything :func:`write_orientation`
+    needs)."""
+
+    paths: tuple
+    shapes: tuple
+    rpcs_before: tuple
+    rpcs_after: tuple
+    models: tuple
+    terms: tuple  # per image: dict A0..B2
+    gcps: ControlPoints
+    checks: ControlPoints
+    tracks: Tracks | None
+    adjustment: AdjustResult | None
+    block: Block | None
+    report: dict = field(default_factory=dict)
+
+
+def residual_rms(res: np.ndarray) -> float | None:
+    """RMS of the 2-D residual norms (pixels), None for none."""
+    res = np.asarray(res, float).reshape(-1, 2)
+    ok = np.all(np.isfinite(res), axis=1)
+    return float(np.sqrt(np.mean(np.sum(res[ok] ** 2, axis=1)))) if ok.any() else None
+
+
+def _point_residuals(rpcs: Sequence[RPC], pts: ControlPoints) -> np.ndarray:
+    out = np.full((len(pts), 2), np.nan)
+    for i, rpc in enumerate(rpcs):
+        m = pts.image == i
+        if m.any():
+            r, c = rpc.project(pts.lon[m], pts.lat[m], pts.h[m])
+            out[m] = np.column_stack([r - pts.row[m], c - pts.col[m]])
+    return out
+
+
+def _choose_models(n_img: int, names: Sequence[str], gcps: ControlPoints, gcp_file: bool, n_tie: np.ndarray,
+                   model: str | None) -> list[BiasModel]:
+    counts = gcps.count_per_image(n_img)
+    if model is not None:
+        m = get_model(model)
+        if gcp_file:
+            short = [f"{names[i]} has {counts[i]}" for i in range(n_img) if counts[i] < m.min_gcps]
+            if short:
+                raise InvalidOptionError(
+                    f"--model {m.name}: needs at least {m.min_gcps} GCP measurement(s) per image, but "
+                    f"{'; '.join(short)} (use --model shift, which needs {get_model('shift').min_gcps}, or add GCPs)"
+                )
+        return [m] * n_img
+    return [choose_model(int(counts[i]), int(n_tie[i])) for i in range(n_img)]
+
+
+def orient_images(
+    paths: Sequence[str | Path],
+    gcps: str | Path | None = None,
+    check_points: str | Path | None = None,
+    dem=None,
+    params: OrientParams = OrientParams(),
+    rpcs: Sequence[RPC] | None = None,
+    scheduler: str | None = None,
+) -> Orientation:
+    """Orient a block of images (module docstring).
+
+    Parameters
+    ----------
+    paths : sequence of path-like
+        Images with RPCs (tags or sidecars); the first is the tie-point
+        reference.
+    gcps, check_points : path-like, optional
+        Point files (:mod:`tiledsm.orient.points`); check points are left
+        out of the fit.
+    dem : callable, optional
+        ``dem(lon, lat) -> h`` ellipsoidal (e.g.
+        :class:`~tiledsm.orient.dem.ReferenceDEM`) constraining tie-point
+        heights.
+    params : OrientParams
+    rpcs : sequence of RPC, optional
+        Cameras to use instead of those found with the images.
+    scheduler : str, optional
+        Dask scheduler of the tie-point tiles.
+
+    Raises
+    ------
+    InputFileError, RPCError
+        Bad images or point files.
+    InvalidOptionError
+        Too few GCPs for the asked model.
+    MatchingError
+        Nothing to adjust (no GCPs and no tie points).
+    """
+    import rasterio
+
+    from tiledsm.geometry.rpc_io import find_camera
+
+    t0 = time.perf_counter()
+    paths = tuple(Path(p) for p in paths)
+    if rpcs is None:
+        rpcs = tuple(find_camera(p)[0] for p in paths)
+    rpcs = tuple(rpcs)
+    shapes = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for p in paths:
+            with rasterio.open(p) as ds:
+                shapes.append((ds.height, ds.width))
+    names = [p.name for p in paths]
+    n_img = len(paths)
+    g = read_points(gcps, paths, shapes) if gcps else ControlPoints.empty()
+    chk = read_points(check_points, paths, shapes) if check_points else ControlPoints.empty()
+    if len(g) and len(chk):
+        both = sorted(set(g.ids.tolist()) & set(chk.ids.tolist()))
+        if both:
+            raise InvalidOptionError(f"--check-points: id(s) {', '.join(both[:5])} are also GCPs in {gcps}")
+    timings = {"read": time.perf_counter() - t0}
+
+    tracks = None
+    guide = None
+    if params.tie_points and n_img >= 2:
+        t1 = time.perf_counter()
+        tracks, guide = tie_point_tracks(paths, rpcs, params.tracks, scheduler=scheduler)
+        timings["tie_points"] = time.perf_counter() - t1
+    n_tie = np.isfinite(tracks.pos[..., 0]).sum(axis=1) if tracks is not None else np.zeros(n_img, int)
+    if len(g) == 0 and (tracks is None or tracks.n == 0):
+        raise MatchingError("orient: nothing to adjust (no GCPs and no tie points)")
+    models = _choose_models(n_img, names, g, bool(gcps), n_tie, params.model)
+
+    # ------------------------------------------------------------ the block
+    t1 = time.perf_counter()
+    img_l, pt_l, row_l, col_l, sig_l = [], [], [], [], []
+    ground0, prior, use_dem, ids = [], [], [], []
+    n_pt = 0
+    if tracks is not None and tracks.n:
+        ti, tp, tr, tc = tracks.observations()
+        h0 = 0.5 * (guide.h_range[0] + guide.h_range[1])
+        gt, _ = intersect(rpcs, ti, tp, tr, tc, tracks.n, h0=h0)
+        img_l.append(ti)
+        pt_l.append(tp)
+        row_l.append(tr)
+        col_l.append(tc)
+        sig_l.append(np.full(ti.size, params.tie_sigma_px))
+        ground0.append(gt)
+        prior.append(np.full(tracks.n, np.inf))
+        use_dem.append(np.full(tracks.n, dem is not None))
+        ids.append(np.array([f"t{k}" for k in range(tracks.n)]))
+        n_pt = tracks.n
+    if len(g):
+        gid = g.point_ids
+        index = {p: n_pt + k for k, p in enumerate(gid)}
+        first = {p: int(np.flatnonzero(g.ids == p)[0]) for p in gid}
+        img_l.append(g.image)
+        pt_l.append(np.array([index[p] for p in g.ids.tolist()]))
+        row_l.append(g.row)
+        col_l.append(g.col)
+        sig_l.append(np.full(len(g), params.gcp_sigma_px))
+        ground0.append(np.array([[g.lon[first[p]], g.lat[first[p]], g.h[first[p]]] for p in gid]))
+        prior.append(np.full(len(gid), params.gcp_sigma_m))
+        use_dem.append(np.zeros(len(gid), bool))
+        ids.append(np.array(gid))
+    block = Block(
+        img=np.concatenate(img_l).astype(int), pt=np.concatenate(pt_l).astype(int), row=np.concatenate(row_l),
+        col=np.concatenate(col_l), sigma_px=np.concatenate(sig_l), ground0=np.vstack(ground0),
+        prior_sigma_m=np.concatenate(prior), use_dem=np.concatenate(use_dem), point_ids=np.concatenate(ids),
+    )
+    # points seen once and without a prior carry no information
+    seen = np.bincount(block.pt, minlength=block.n_points)
+    bad = np.isnan(block.ground0).any(axis=1) & ~np.isfinite(block.prior_sigma_m)
+    if bad.any() or (seen[~np.isfinite(block.prior_sigma_m)] < 2).any():
+        keep_obs = ~bad[block.pt] & ((seen[block.pt] >= 2) | np.isfinite(block.prior_sigma_m[block.pt]))
+        block = Block(block.img[keep_obs], block.pt[keep_obs], block.row[keep_obs], block.col[keep_obs],
+                      block.sigma_px[keep_obs], np.nan_to_num(block.ground0), block.prior_sigma_m,
+                      block.use_dem & ~bad, block.point_ids)
+    result = adjust_block(rpcs, models, block, dem, params.adjust)
+    timings["adjust"] = time.perf_counter() - t1
+
+    # ------------------------------------------------------------ corrected RPCs
+    t1 = time.perf_counter()
+    after, terms = [], []
+    for i, (rpc, m) in enumerate(zip(rpcs, models)):
+        a, b = m.full(result.x[i])
+        terms.append(dict(zip(TERMS, [float(v) for v in (*a, *b)])))
+        h_range = (rpc.height_off - abs(rpc.height_scale), rpc.height_off + abs(rpc.height_scale))
+        after.append(rpc.with_affine(a, b, image_shape=shapes[i], h_range=h_range,
+                                     max_error=params.refit_max_error_px).replace(
+            source=f"{paths[i]} bias-corrected ({m.name})"))
+    timings["fold"] = time.perf_counter() - t1
+    timings["total"] = time.perf_counter() - t0
+
+    report = _report(paths, rpcs, after, models, terms, g, chk, tracks, guide, block, result, dem)
+    report["timings_s"] = timings
+    return Orientation(paths, tuple(shapes), rpcs, tuple(after), tuple(models), tuple(terms), g, chk, tracks,
+                       result, block, report)
+
+
+def _tie_relative(rpcs, tracks: Tracks | None) -> float | None:
+    if tracks is None or tracks.n == 0:
+        return None
+    i, p, r, c = tracks.observations()
+    _, res = intersect(rpcs, i, p, r, c, tracks.n)
+    return residual_rms(res)
+
+
+def _report(paths, before, after, models, terms, g, chk, tracks, guide, block, result, dem) -> dict:
+    rejected = result.rejected
+    rej_ids = sorted({f"{block.point_ids[block.pt[j]]}@{paths[block.img[j]].name}" for j in np.flatnonzero(rejected)})
+    gcp_ids = set(g.ids.tolist())
+    rep = {
+        "images": [],
+        "gcp_rms_px": {"before": residual_rms(_point_residuals(before, g)),
+                       "after": residual_rms(_point_residuals(after, g))},
+        "check_rms_px": {"before": residual_rms(_point_residuals(before, chk)),
+                         "after": residual_rms(_point_residuals(after, chk))},
+        "tie_relative_rms_px": {"before": _tie_relative(before, tracks), "after": _tie_relative(after, tracks)},
+        "rejected_gcps": sorted({r.split("@")[0] for r in rej_ids if r.split("@")[0] in gcp_ids}),
+        "rejected_measurements": rej_ids if len(rej_ids) <= 200 else rej_ids[:200] + [f"... {len(rej_ids) - 200} more"],
+        "n_rejected": int(rejected.sum()),
+        "n_gcps": len(g.point_ids), "n_check_points": len(chk.point_ids),
+        "n_tracks": 0 if tracks is None else tracks.n,
+        "adjustment": {"rounds": result.rounds, "nfev": result.nfev, **result.info},
+    }
+    if tracks is not None:
+        rep["tracks"] = {"views_per_track": np.bincount(np.isfinite(tracks.pos[..., 0]).sum(axis=0)).tolist(),
+                         "rejected_p2l": list(tracks.rejected_p2l)}
+    if guide is not None:
+        rep["guide"] = {"h_range_m": list(guide.h_range), "shift_px": guide.shift.tolist(),
+                        "coarse_matches": list(guide.n_matches)}
+    if dem is not None:
+        d = result.dem_residual_m[result.dem_used]
+        rep["dem"] = {"source": getattr(dem, "source", str(dem)), "n_used": int(result.dem_used.sum()),
+                      "median_h_minus_dem_m": float(np.median(d)) if d.size else None}
+    for i, p in enumerate(paths):
+        m = block.img == i
+        rep["images"].append({
+            "image": str(p), "model": models[i].name, "terms": terms[i],
+            "n_tie_measurements": int(np.sum(m & ~np.isfinite(block.prior_sigma_m[block.pt]))),
+            "n_gcp_measurements": int(np.sum(g.image == i)),
+            "n_rejected": int(np.sum(rejected & m)),
+            "gcp_rms_px": {"before": residual_rms(_point_residuals(before, g)[g.image == i]),
+                           "after": residual_rms(_point_residuals(after, g)[g.image == i])},
+            "check_rms_px": {"before": residual_rms(_point_residuals(before, chk)[chk.image == i]),
+                             "after": residual_rms(_point_residuals(after, chk)[chk.image == i])},
+            "rpc_before": before[i].source,
+        })
+    return rep
+
+
+# ------------------------------------------------------------------ writing
+def write_orientation(o: Orientation, out_dir: str | Path, params: OrientParams | None = None,
+                      extra: dict | None = None) -> dict:
+    """Write the products of an orientation into ``out_dir``:
+
+    - ``<stem>_RPC.TXT``: the corrected RPC, GDAL's text format;
+    - ``<stem>.tif``: a copy of the image carrying the corrected RPC in its
+      tags (GDAL reads the sidecar beside it first; both hold the same
+      model). Pixel coordinates are the input file's (a crop's RPC is the
+      crop's: the copy has no crop geotransform);
+    - ``orient.json``: terms per image, residual RMS at GCPs, check points
+      and tie points before/after, rejected measurements by id;
+    - ``residuals.csv``: every GCP/check-point residual before/after;
+    - ``residuals.png``: residual vectors over each image.
+
+    Returns
+    -------
+    dict
+        The ``orient.json`` document.
+    """
+    from tiledsm.geometry.rpc_io import rpc_txt_path, write_rpc_txt
+    from tiledsm.io import atomic_path
+    from tiledsm.orient.export import copy_with_rpc
+    from tiledsm.orient.quicklook import residual_figure
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = []
+    stems = [p.stem for p in o.paths]
+    if len(set(stems)) != len(stems):
+        raise InvalidOptionError(f"IMAGES: two images share a file stem ({', '.join(stems)}); outputs would collide")
+    for i, p in enumerate(o.paths):
+        img = out / (p.stem + ".tif")
+        if img.resolve() == p.resolve():
+            raise InvalidOptionError(f"--out: {out} holds the input {p.name}; choose another folder")
+        copy_with_rpc(p, img, o.rpcs_after[i])
+        write_rpc_txt(o.rpcs_after[i], rpc_txt_path(img))
+        files.append({"image": str(img), "rpc_txt": str(rpc_txt_path(img))})
+    doc = dict(o.report)
+    for d, f in zip(doc["images"], files):
+        d.update(f)
+    if params is not None:
+        doc["params"] = json.loads(json.dumps(asdict(params), default=str))
+    doc.update(extra or {})
+    # residual table
+    rows = ["id,image,kind,row,col,drow_before,dcol_before,drow_after,dcol_after"]
+    for kind, pts in (("gcp", o.gcps), ("check", o.checks)):
+        rb, ra = _point_residuals(o.rpcs_before, pts), _point_residuals(o.rpcs_after, pts)
+        for k in range(len(pts)):
+            rows.append(f"{pts.ids[k]},{o.paths[pts.image[k]].name},{kind},{pts.row[k]:.3f},{pts.col[k]:.3f},"
+                        f"{rb[k, 0]:.4f},{rb[k, 1]:.4f},{ra[k, 0]:.4f},{ra[k, 1]:.4f}")
+    with atomic_path(out / "residuals.csv") as tmp:
+        Path(tmp).write_text("\n".join(rows) + "\n")
+    with atomic_path(out / "residuals.png") as tmp:
+        residual_figure(o).savefig(tmp, format="png", dpi=100)
+    with atomic_path(out / "orient.json") as tmp:
+        Path(tmp).write_text(json.dumps(doc, indent=2, default=_json_default))
+    return doc
+
+
+def _json_default(v):
+    if isinstance(v, (np.integer,)):
+        return int(v)
+    if isinstance(v, (np.floating,)):
+        return float(v)
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    return str(v)

@@ -1,0 +1,394 @@
+"""Multi-view tie-point tracks over whole scenes, tiled.
+
+The first image is the reference. Its tiles are the tasks of one
+:func:`dask.array.map_blocks` call (a 40k-line scene never sits in memory:
+a task reads its tile plus a template halo, and in every other image only
+the window its points can fall in):
+
+1. a coarse guide (:func:`coarse_guide`): SIFT matches between overviews
+   (:func:`tiledsm.match.tiepoints.match_tiepoints`), intersected with the
+   RPCs as they are, give the scene's height range and, per image, the
+   translation that makes the RPC prediction land on the matches (the
+   relative bias across the epipolar direction; along it, the bias is
+   absorbed by the heights);
+2. in each reference tile, corner features (Shi-Tomasi,
+   ``cv2.goodFeaturesToTrack``); each one is localised at the two ends of
+   the height range and projected into every other image: the segment
+   between the two projections, shifted by the guide and widened by a
+   margin, is where ``cv2.matchTemplate`` (zero-mean NCC) looks; the NCC
+   peak is refined to a sub-pixel position by a parabola in each axis;
+3. per image pair, P2L mismatch rejection (:mod:`tiledsm.orient.p2l`).
+
+A track is a reference point and its matches in the other images (two or
+more views).
+
+Conventions: pixel coordinates GDAL (top-left image corner at (0, 0); the
+centre of array element ``[i, j]`` at ``(i + .5, j + .5)``); heights metres
+above the WGS84 ellipsoid.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from tiledsm.errors import MatchingError
+from tiledsm.geometry.rpc import RPC
+from tiledsm.orient.p2l import P2LParams, p2l_filter
+
+__all__ = ["TrackParams", "Guide", "Tracks", "coarse_guide", "match_tile", "tie_point_tracks", "read_window"]
+
+
+@dataclass(frozen=True)
+class TrackParams:
+    """Parameters of :func:`tie_point_tracks`.
+
+    Attributes
+    ----------
+    tile : int
+        Reference tile side, pixels (one task per tile).
+    features_per_tile : int
+        Corner features per tile, at most.
+    min_distance : int
+        Minimum distance between features, pixels.
+    quality : float
+        ``goodFeaturesToTrack`` quality level.
+    template : int
+        NCC template side, pixels (odd).
+    margin_px : float
+        Search margin around the predicted segment, pixels.
+    min_ncc : float
+        Smallest NCC peak accepted.
+    min_std : float
+        Smallest template standard deviation (grey levels): flat templates
+        are skipped.
+    coarse_size : int
+        Longest side of the overviews matched for the guide, pixels.
+    height_margin_m : float
+        Added on both sides of the guide's height range, metres.
+    max_window : int
+        Longest side of a per-tile search window read in another image;
+        wider windows (a huge height range) are read point by point.
+    p2l : P2LParams
+        Mismatch rejection.
+    """
+
+    tile: int = 512
+    features_per_tile: int = 150
+    min_distance: int = 15
+    quality: float = 0.01
+    template: int = 15
+    margin_px: float = 4.0
+    min_ncc: float = 0.8
+    min_std: float = 2.0
+    coarse_size: int = 1000
+    height_margin_m: float = 15.0
+    max_window: int = 2048
+    p2l: P2LParams = P2LParams()
+
+
+@dataclass(frozen=True)
+class Guide:
+    """Where to look: the height range and per-image prediction shifts.
+
+    Attributes
+    ----------
+    h_range : (float, float)
+        Metres, ellipsoidal, as seen through the RPCs as they are.
+    shift : numpy.ndarray
+        ``(n_images, 2)`` row/col translation added to the RPC prediction
+        in each image (0 for the reference).
+    n_matches : tuple of int
+        Coarse matches used per image (0 for the reference).
+    """
+
+    h_range: tuple[float, float]
+    shift: np.ndarray
+    n_matches: tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class Tracks:
+    """Tie-point tracks.
+
+    Attributes
+    ----------
+    pos : numpy.ndarray
+        ``(n_images, n, 2)`` row/col of each track in each image (GDAL
+        convention), NaN where the track has no match.
+    ncc : numpy.ndarray
+        ``(n_images, n)`` NCC of each match (1 in the reference).
+    rejected_p2l : tuple of int
+        Matches rejected by P2L per image.
+    """
+
+    pos: np.ndarray
+    ncc: np.ndarray
+    rejected_p2l: tuple[int, ...]
+
+    @property
+    def n(self) -> int:
+        return int(self.pos.shape[1])
+
+    def observations(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(img, pt, row, col)`` of every measurement."""
+        ok = np.isfinite(self.pos[..., 0])
+        img, pt = np.nonzero(ok)
+        return img, pt, self.pos[img, pt, 0], self.pos[img, pt, 1]
+
+
+# ------------------------------------------------------------------ reading
+def read_window(path: str | Path, r0: int, r1: int, c0: int, c1: int, band: int = 1) -> np.ndarray:
+    """Rows ``r0:r1`` and columns ``c0:c1`` of a raster band as float32,
+    NaN outside the raster and on nodata (boundless read)."""
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning
+    from rasterio.windows import Window
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        with rasterio.open(path) as ds:
+            h, w = ds.height, ds.width
+            out = np.full((r1 - r0, c1 - c0), np.nan, np.float32)
+            rr0, rr1, cc0, cc1 = max(r0, 0), min(r1, h), max(c0, 0), min(c1, w)
+            if rr1 > rr0 and cc1 > cc0:
+                a = ds.read(band, window=Window(cc0, rr0, cc1 - cc0, rr1 - rr0), masked=True)
+                out[rr0 - r0: rr1 - r0, cc0 - c0: cc1 - c0] = a.astype(np.float32).filled(np.nan)
+    return out
+
+
+def _overview(path: str | Path, size: int) -> tuple[np.ndarray, tuple[float, float]]:
+    """Area-averaged overview (longest side <= size) and its (row, col)
+    scale factors to full-image pixels."""
+    import rasterio
+    from rasterio.enums import Resampling
+    from rasterio.errors import NotGeoreferencedWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        with rasterio.open(path) as ds:
+            f = max(1, int(np.ceil(max(ds.height, ds.width) / size)))
+            oh, ow = max(1, ds.height // f), max(1, ds.width // f)
+            a = ds.read(1, out_shape=(oh, ow), masked=True, resampling=Resampling.average)
+            return a.astype(np.float32).filled(np.nan), (ds.height / oh, ds.width / ow)
+
+
+# ------------------------------------------------------------------ guide
+def coarse_guide(paths: Sequence[str | Path], rpcs: Sequence[RPC], params: TrackParams = TrackParams()) -> Guide:
+    """Height range and prediction shifts from overview SIFT matches
+    between the reference and every other image (module docstring).
+
+    Raises
+    ------
+    MatchingError
+        An image shares fewer than 8 coarse matches with the reference.
+    """
+    from tiledsm.match.tiepoints import match_tiepoints
+    from tiledsm.orient.adjust import intersect
+
+    ref, (sr, sc) = _overview(paths[0], params.coarse_size)
+    shifts = [np.zeros(2)]
+    counts = [0]
+    heights = []
+    for j in range(1, len(paths)):
+        other, (tr, tc) = _overview(paths[j], params.coarse_size)
+        q0, qj = match_tiepoints(ref, other, max_size=params.coarse_size)
+        p0 = q0 * np.array([sr, sc])
+        pj = qj * np.array([tr, tc])
+        if len(p0) < 8:
+            raise MatchingError(f"tie points: only {len(p0)} coarse matches between {Path(paths[0]).name} "
+                                f"and {Path(paths[j]).name} (need >= 8)")
+        n = len(p0)
+        img = np.r_[np.zeros(n, int), np.full(n, 1)]
+        pt = np.r_[np.arange(n), np.arange(n)]
+        g, _ = intersect([rpcs[0], rpcs[j]], img, pt, np.r_[p0[:, 0], pj[:, 0]], np.r_[p0[:, 1], pj[:, 1]], n)
+        ok = np.all(np.isfinite(g), axis=1)
+        pred = np.stack(rpcs[j].project(g[ok, 0], g[ok, 1], g[ok, 2]), -1)
+        dev = pj[ok] - pred
+        shift = np.median(dev, axis=0)
+        good = np.hypot(*(dev - shift).T) < max(3.0, 3 * float(np.median(np.hypot(*(dev - shift).T))))
+        shifts.append(shift)
+        counts.append(int(good.sum()))
+        heights.append(g[ok][good, 2])
+    h = np.concatenate(heights)
+    lo, hi = np.percentile(h, [1, 99]) if h.size >= 20 else (h.min(), h.max())
+    m = params.height_margin_m + 0.1 * (hi - lo)
+    return Guide((float(lo - m), float(hi + m)), np.array(shifts), tuple(counts))
+
+
+# ------------------------------------------------------------------ one tile
+def _subpixel(res: np.ndarray, i: int, j: int) -> tuple[float, float]:
+    def para(a, b, c):
+        den = a - 2 * b + c
+        return 0.0 if den >= 0 else 0.5 * (a - c) / den
+
+    return i + para(res[i - 1, j], res[i, j], res[i + 1, j]), j + para(res[i, j - 1], res[i, j], res[i, j + 1])
+
+
+def _features(tile: np.ndarray, halo: int, params: TrackParams) -> np.ndarray:
+    """Array indices ``(i, j)`` (in the tile with halo) of corner features
+    of the tile interior."""
+    import cv2
+
+    ok = np.isfinite(tile)
+    if ok.sum() < 16:
+        return np.zeros((0, 2), int)
+    lo, hi = np.percentile(tile[ok], [1, 99])
+    u8 = np.clip((np.where(ok, tile, lo) - lo) * (255.0 / max(hi - lo, 1e-6)), 0, 255).astype(np.uint8)
+    mask = np.zeros(tile.shape, np.uint8)
+    mask[halo:-halo, halo:-halo] = 1
+    mask &= cv2.erode(ok.astype(np.uint8), np.ones((2 * halo + 1, 2 * halo + 1), np.uint8))
+    pts = cv2.goodFeaturesToTrack(u8, params.features_per_tile, params.quality, params.min_distance, mask=mask,
+                                  blockSize=5)
+    if pts is None:
+        return np.zeros((0, 2), int)
+    xy = np.rint(pts.reshape(-1, 2)).astype(int)
+    return xy[:, ::-1]
+
+
+def match_tile(
+    paths: Sequence[str | Path],
+    rpcs: Sequence[RPC],
+    guide: Guide,
+    window: tuple[int, int, int, int],
+    params: TrackParams = TrackParams(),
+) -> dict:
+    """Features of one reference tile ``(r0, r1, c0, c1)`` matched into
+    every other image (module docstring, step 2).
+
+    Returns
+    -------
+    dict
+        ``pos``: ``(n_images, n, 2)`` GDAL row/col (NaN: no match),
+        ``ncc``: ``(n_images, n)``.
+    """
+    import cv2
+
+    r0, r1, c0, c1 = window
+    half = params.template // 2
+    halo = half + 2
+    tile = read_window(paths[0], r0 - halo, r1 + halo, c0 - halo, c1 + halo)
+    ij = _features(tile, halo, params)
+    n_img = len(paths)
+    pos = np.full((n_img, len(ij), 2), np.nan)
+    ncc = np.full((n_img, len(ij)), np.nan)
+    if len(ij) == 0:
+        return {"pos": pos, "ncc": ncc}
+    p0 = ij + np.array([r0 - halo, c0 - halo]) + 0.5
+    pos[0], ncc[0] = p0, 1.0
+    tmpls = [tile[i - half: i + half + 1, j - half: j + half + 1] for i, j in ij]
+    lo, hi = guide.h_range
+    lon, lat = rpcs[0].localize(p0[:, 0:1], p0[:, 1:2], np.array([[lo, hi]]))
+    reach = half + int(np.ceil(params.margin_px)) + 2
+    for k in range(1, n_img):
+        q = np.stack(rpcs[k].project(lon, lat, np.broadcast_to([[lo, hi]], lon.shape)), -1) + guide.shift[k]
+        qmin = np.floor(q.min(axis=1) - 0.5).astype(int) - reach  # array indices
+        qmax = np.ceil(q.max(axis=1) - 0.5).astype(int) + reach + 1
+        ok = np.all(np.isfinite(q), axis=(1, 2))
+        if not ok.any():
+            continue
+        bmin, bmax = qmin[ok].min(axis=0), qmax[ok].max(axis=0)
+        whole = max(bmax - bmin) <= params.max_window
+        big = read_window(paths[k], bmin[0], bmax[0], bmin[1], bmax[1]) if whole else None
+        for n in np.flatnonzero(ok):
+            t = tmpls[n]
+            if not np.all(np.isfinite(t)) or t.std() < params.min_std:
+                continue
+            a0, a1 = qmin[n], qmax[n]
+            if whole:
+                s = big[a0[0] - bmin[0]: a1[0] - bmin[0], a0[1] - bmin[1]: a1[1] - bmin[1]]
+            else:
+                s = read_window(paths[k], a0[0], a1[0], a0[1], a1[1])
+            if not np.all(np.isfinite(s)):
+                s = np.where(np.isfinite(s), s, np.nanmean(s) if np.isfinite(s).any() else 0.0)
+            if s.shape[0] < t.shape[0] + 2 or s.shape[1] < t.shape[1] + 2:
+                continue
+            res = cv2.matchTemplate(s.astype(np.float32), t.astype(np.float32), cv2.TM_CCOEFF_NORMED)
+            i, j = np.unravel_index(int(np.argmax(res)), res.shape)
+            if res[i, j] < params.min_ncc or not (0 < i < res.shape[0] - 1 and 0 < j < res.shape[1] - 1):
+                continue
+            fi, fj = _subpixel(res, i, j)
+            pos[k, n] = (a0[0] + fi + half + 0.5, a0[1] + fj + half + 0.5)
+            ncc[k, n] = res[i, j]
+    return {"pos": pos, "ncc": ncc}
+
+
+# ------------------------------------------------------------------ scene
+def _tile_task(paths, rpcs, guide, shape, params, block_info=None):
+    (bi, bj) = block_info[None]["chunk-location"]
+    t = params.tile
+    win = (bi * t, min((bi + 1) * t, shape[0]), bj * t, min((bj + 1) * t, shape[1]))
+    out = np.empty((1, 1), object)
+    out[0, 0] = match_tile(paths, rpcs, guide, win, params)
+    return out
+
+
+def tie_point_tracks(
+    paths: Sequence[str | Path],
+    rpcs: Sequence[RPC],
+    params: TrackParams = TrackParams(),
+    guide: Guide | None = None,
+    scheduler: str | None = None,
+) -> tuple[Tracks, Guide]:
+    """Multi-view tie-point tracks of a block of images (module docstring).
+
+    Parameters
+    ----------
+    paths : sequence of path-like
+        Images (band 1 is used); the first is the reference.
+    rpcs : sequence of RPC
+        Their cameras (GDAL convention, as they are: biased is fine).
+    params : TrackParams
+    guide : Guide, optional
+        Default: :func:`coarse_guide`.
+    scheduler : str, optional
+        Dask scheduler for the tile tasks (default: the current one).
+
+    Returns
+    -------
+    (Tracks, Guide)
+    """
+    import dask
+    import dask.array as da
+    import rasterio
+
+    if len(paths) < 2:
+        raise MatchingError(f"tie points: need >= 2 images, got {len(paths)}")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with rasterio.open(paths[0]) as ds:
+            shape = (ds.height, ds.width)
+    guide = guide or coarse_guide(paths, rpcs, params)
+    t = params.tile
+    nb = (-(-shape[0] // t), -(-shape[1] // t))
+    graph = da.map_blocks(_tile_task, [str(p) for p in paths], list(rpcs), guide, shape, params,
+                          chunks=((1,) * nb[0], (1,) * nb[1]), dtype=object, meta=np.empty((0, 0), object))
+    with dask.config.set(scheduler=scheduler) if scheduler else _nullcontext():
+        parts = graph.compute()
+    pos = np.concatenate([p["pos"] for p in parts.ravel()], axis=1)
+    ncc = np.concatenate([p["ncc"] for p in parts.ravel()], axis=1)
+    rejected = [0]
+    for k in range(1, len(paths)):
+        m = np.isfinite(pos[k, :, 0])
+        if m.sum() >= 8:
+            r = p2l_filter(rpcs[0], rpcs[k], pos[0, m], pos[k, m], guide.h_range, params.p2l)
+            bad = np.flatnonzero(m)[~r.inlier]
+            pos[k, bad] = np.nan
+            ncc[k, bad] = np.nan
+            rejected.append(int(bad.size))
+        else:
+            rejected.append(0)
+    keep = np.isfinite(pos[..., 0]).sum(axis=0) >= 2
+    return Tracks(pos[:, keep], ncc[:, keep], tuple(rejected)), guide
+
+
+class _nullcontext:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
