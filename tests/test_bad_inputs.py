@@ -101,6 +101,12 @@ def k(tmp_path_factory):
         dst.write(geoid, 1)
     f["geoid_elsewhere"] = root / "geoid_elsewhere.gtx"
 
+    (root / "gcps_bad_columns.csv").write_text("name,image,x,y\nA,view_0.tif,1,2\n")
+    f["gcps_bad_columns"] = root / "gcps_bad_columns.csv"
+    (root / "gcps_dup.csv").write_text(
+        "id,image,lon,lat,h,row,col\nA,view_0.tif,3.0,45.0,300,10,10\nA,view_0.tif,3.0,45.0,300,12,12\n")
+    f["gcps_dup"] = root / "gcps_dup.csv"
+
     def recipe(name: str, text: str) -> Path:
         (root / name).write_text(text)
         return root / name
@@ -186,6 +192,25 @@ CASES = [
     Case("run-sr-scale-without-weights", lambda f, out: ["run", str(f["r_scale"]), "--out", str(out)], lambda f: ["sr.scale"]),
     Case("run-recipe-is-folder", lambda f, out: ["run", str(f["folder"]), "--out", str(out)], lambda f: ["a_folder"]),
     Case("run-recipe-image-missing", lambda f, out: ["run", str(f["r_missing"]), "--out", str(out)], lambda f: ["nope.tif"]),
+    # --- ortho
+    Case("ortho-dsm-missing", lambda f, out: ["ortho", str(f["v0"]), "--dsm", str(f["root"] / "nope.tif"), "--out", str(out)],
+         lambda f: ["nope.tif"]),
+    Case("ortho-unknown-kernel", lambda f, out: ["ortho", str(f["v0"]), "--dsm", str(f["truth"]), "--out", str(out),
+                                                "--kernel", "lanczos"], lambda f: ["lanczos"]),
+    Case("ortho-dsm-elsewhere", lambda f, out: ["ortho", str(f["v0"]), "--dsm", str(f["dsm_far"]), "--out", str(out)],
+         lambda f: ["dsm_far.tif"]),
+    Case("ortho-image-without-camera", lambda f, out: ["ortho", str(f["no_rpc"]), "--dsm", str(f["truth"]), "--out", str(out)],
+         lambda f: ["no_rpc.tif"]),
+    # --- orient
+    Case("orient-gcps-missing", lambda f, out: ["orient", str(f["v0"]), str(f["v1"]), "--gcps", str(f["root"] / "nope.csv"),
+                                               "--out", str(out)], lambda f: ["nope.csv"]),
+    Case("orient-gcps-wrong-columns", lambda f, out: ["orient", str(f["v0"]), str(f["v1"]), "--gcps",
+                                                     str(f["gcps_bad_columns"]), "--out", str(out)],
+         lambda f: ["gcps_bad_columns.csv"]),
+    Case("orient-gcps-duplicate-ids", lambda f, out: ["orient", str(f["v0"]), str(f["v1"]), "--gcps", str(f["gcps_dup"]),
+                                                     "--out", str(out)], lambda f: ["gcps_dup.csv"]),
+    Case("orient-image-without-rpc", lambda f, out: ["orient", str(f["no_rpc"]), str(f["v1"]), "--out", str(out)],
+         lambda f: ["no_rpc.tif"]),
     # --- info, synth
     Case("info-missing", lambda f, out: ["info", str(f["root"] / "nope.tif")], lambda f: ["nope.tif"]),
     Case("info-folder", lambda f, out: ["info", str(f["folder"])], lambda f: ["a_folder"]),

@@ -19,7 +19,7 @@ import numpy as np
 import xarray as xr
 
 from tiledsm.cluster import ClusterConfig, compute_context, compute_with_progress
-from tiledsm.errors import InvalidOptionError
+from tiledsm.errors import InvalidOptionError, NoOverlapError
 from tiledsm.ortho.rectify import ImageSource, OrthoParams, orthorectify
 
 __all__ = ["open_source", "matched_camera", "open_dsm", "resolution_factor", "ortho_files", "write_ortho_products"]
@@ -125,7 +125,10 @@ def ortho_files(
     if chunk % factor:
         raise InvalidOptionError(f"--chunk: must be a multiple of the resolution factor {factor}, got {chunk}")
     params = OrthoParams(kernel=kernel, factor=factor, occlusion=occlusion, occlusion_tolerance=occlusion_tolerance)
-    return orthorectify(source, height, params, chunk=chunk, bounds=bounds, crs=crs)
+    try:
+        return orthorectify(source, height, params, chunk=chunk, bounds=bounds, crs=crs)
+    except NoOverlapError as exc:
+        raise NoOverlapError(f"{exc}; --dsm {Path(dsm).resolve()}") from None
 
 
 def write_ortho_products(
