@@ -87,3 +87,18 @@ def test_planned_commands_offer_a_dry_run(command):
     text = sub.choices[command].format_help()
     assert "--dry-run" in text and "--workers" in text
     assert ("--allow-large" in text) == (command in ("dsm", "run"))
+
+
+def test_debug_shows_the_traceback_behind_the_one_line_error(tmp_path):
+    """An error is one line; ``tiledsm --debug`` adds the traceback above it."""
+    import subprocess
+    import sys
+
+    missing = str(tmp_path / "nope.tif")
+    plain = subprocess.run([sys.executable, "-m", "tiledsm", "info", missing], capture_output=True, text=True)
+    debug = subprocess.run([sys.executable, "-m", "tiledsm", "--debug", "info", missing], capture_output=True, text=True)
+    line = f"tiledsm info: error: {missing}: no such file"
+    assert plain.returncode == debug.returncode == 2
+    assert plain.stderr.strip() == line
+    assert "Traceback (most recent call last)" in debug.stderr and "InputFileError" in debug.stderr
+    assert debug.stderr.strip().splitlines()[-1] == line

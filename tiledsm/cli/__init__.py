@@ -35,6 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Tiled digital surface models from satellite and UAV image scenes.",
     )
     parser.add_argument("--version", action="version", version=f"tiledsm {__version__}")
+    parser.add_argument("--debug", action="store_true", help="on an error, also print its traceback")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in COMMAND_MODULES:
@@ -48,6 +49,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         result = args.func(args)
     except TiledsmError as exc:
+        if args.debug:
+            import traceback
+
+            traceback.print_exc()
         print(f"tiledsm {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
