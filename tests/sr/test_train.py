@@ -60,3 +60,64 @@ def test_centred_blur_noise_samples_lr_pixel_centres(scale):
     expect = 0.003 * centre[:, None] + 0.005 * centre[None, :]
     inner = slice(4, -4)  # away from the reflected border
     np.testing.assert_allclose(lr[inner, inner], expect[inner, inner], atol=1e-6)
+
+
+def _tiny(tmp_path, name, **kw):
+    return TrainConfig(model="srcnn", scale=2, out=str(tmp_path / name), steps=24, batch=2, patch=16, use_skimage=False,
+                       synthetic=1, params={"residual": True}, eval_crop=32, checkpoint_every=5, **kw)
+
+
+def test_interrupted_training_continues_to_the_uninterrupted_weights(tmp_path):
+    """Training is defined by its step count: a run stopped by the
+    max_seconds safety stop says so on its card, keeps a checkpoint, and
+    the same configuration continues from it to weights bit-identical to an
+    uninterrupted run's (random states included)."""
+    whole = train(_tiny(tmp_path, "whole.pt"), log=lambda m: None)
+    assert whole["finished"] and whole["steps"] == 24
+    assert not (tmp_path / "whole.pt.ckpt").exists()
+
+    cfg = _tiny(tmp_path, "cut.pt")
+    # stop after the first step (max_seconds ~ 0), then again part way, then finish
+    first = train(TrainConfig(**{**cfg.__dict__, "max_seconds": 1e-9}), log=lambda m: None)
+    assert not first["finished"] and first["steps"] == 1 and first["steps_planned"] == 24
+    assert "NOT FINISHED" in (tmp_path / "cut.md").read_text()
+    assert (tmp_path / "cut.pt.ckpt").exists()
+    messages = []
+    done = train(cfg, log=messages.append)
+    assert any("resumed" in m and "step 1 of 24" in m for m in messages), messages
+    assert done["finished"] and done["steps"] == 24 and not (tmp_path / "cut.pt.ckpt").exists()
+    a = torch.load(tmp_path / "whole.pt", weights_only=False)["state_dict"]
+    b = torch.load(tmp_path / "cut.pt", weights_only=False)["state_dict"]
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+    # another configuration never resumes that checkpoint
+    train(TrainConfig(**{**cfg.__dict__, "max_seconds": 1e-9}), log=lambda m: None)
+    with pytest.raises(SRError, match="checkpoint of another training configuration"):
+        train(TrainConfig(**{**cfg.__dict__, "lr": 5e-4}), log=lambda m: None)
+
+
+def test_training_never_overwrites_the_shipped_weights_by_accident():
+    from pathlib import Path
+
+    import tiledsm.sr
+
+    shipped = Path(tiledsm.sr.__file__).resolve().parent / "weights" / "srcnn_x2.pt"
+    with pytest.raises(SRError, match="--ship"):
+        TrainConfig(model="srcnn", out=str(shipped))
+    assert TrainConfig(model="srcnn", out=str(shipped), ship=True).ship
+
+
+def test_card_lists_cache_images_with_checksums(tmp_path):
+    import hashlib
+
+    import cv2
+
+    folder = tmp_path / "tiles"
+    folder.mkdir()
+    img = (synthetic_image(3, 64) * 255).astype(np.uint8)
+    cv2.imwrite(str(folder / "t.png"), img)
+    card = train(TrainConfig(model="srcnn", out=str(tmp_path / "m.pt"), steps=1, batch=1, patch=16, use_skimage=False,
+                             synthetic=0, cache_dirs=(str(folder),), eval_crop=32), log=lambda m: None)
+    digest = hashlib.sha256((folder / "t.png").read_bytes()).hexdigest()[:16]
+    assert card["data"] == [f"tiles/t.png sha256:{digest}"]

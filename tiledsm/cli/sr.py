@@ -47,6 +47,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     t.add_argument("--max-seconds", type=float, default=None)
     t.add_argument("--cache-dir", action="append", default=None, help="extra image folder (repeatable)")
     t.add_argument("--threads", type=int, default=None, help="torch threads")
+    t.add_argument("--ship", action="store_true",
+                   help="allow --out inside the package's shipped weights folder (replace the shipped weights)")
     t.set_defaults(func=run_train)
 
 
@@ -94,10 +96,14 @@ def run_train(args: argparse.Namespace) -> int:
         "model": args.model, "scale": args.scale, "out": args.out, "steps": args.steps,
         "max_seconds": args.max_seconds, "threads": args.threads,
         "cache_dirs": tuple(args.cache_dir) if args.cache_dir else None,
+        "ship": True if args.ship else None,
     }
     config = config_from_yaml(args.recipe, **{k: v for k, v in overrides.items() if v is not None})
     card = train(config, log=lambda m: print(m, flush=True))
     for name, r in card["heldout_psnr_db"].items():
         print(f"{name}: {config.model} {r['model']:.2f} dB, bicubic {r['bicubic']:.2f} dB")
     print(f"wrote {config.out} and {Path(config.out).with_suffix('.md')}")
+    if not card["finished"]:
+        print(f"NOT FINISHED: {card['steps']} of {card['steps_planned']} steps (max_seconds); run the same command to continue")
+        return 3
     return 0

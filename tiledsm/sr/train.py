@@ -48,7 +48,7 @@ from tiledsm.sr.registry import SRError, build
 
 __all__ = [
     "TrainConfig", "train", "load_images", "skimage_images", "synthetic_image",
-    "degrade_bicubic", "degrade_blur_noise", "evaluate", "HELD_OUT", "TRAIN_SKIMAGE",
+    "degrade_bicubic", "degrade_blur_noise", "evaluate", "checkpoint_path", "HELD_OUT", "TRAIN_SKIMAGE",
 ]
 
 #: scikit-image images kept out of training (held-out test set)
@@ -73,9 +73,13 @@ class TrainConfig:
     out : str
         Weights file to write (``.pt``); the card goes beside it (``.md``).
     steps : int
-        Maximum optimiser steps.
+        Optimiser steps: the schedule (learning-rate halvings at 60 % and
+        85 %) and the result are defined by this count.
     max_seconds : float
-        Wall-clock budget; training stops at whichever limit comes first.
+        Safety stop only: when it is reached first, training stops with a
+        checkpoint and the card says ``finished: false``; the same command
+        continues from the checkpoint (the weights of an interrupted and
+        continued run equal those of an uninterrupted one).
     batch : int
         Patches per step.
     patch : int
@@ -107,6 +111,16 @@ class TrainConfig:
     eval_crop : int or None
         Evaluate on the central ``eval_crop``-pixel square of each held-out
         image (default: the whole images).
+    checkpoint : str or None
+        Checkpoint file (default ``out`` + ``.ckpt``): written every
+        ``checkpoint_every`` steps and at a safety stop, resumed when it
+        belongs to the same configuration, removed when training finishes.
+    checkpoint_every : int
+        Steps between checkpoints.
+    ship : bool
+        Allow ``out`` inside the package's shipped weights folder
+        (``tiledsm/sr/weights``); refused otherwise, so a training run never
+        overwrites the shipped weights by accident.
     """
 
     model: str = "srcnn"
@@ -129,8 +143,19 @@ class TrainConfig:
     params: dict = field(default_factory=dict)
     threads: int = 1
     eval_crop: int | None = None
+    checkpoint: str | None = None
+    checkpoint_every: int = 200
+    ship: bool = False
 
     def __post_init__(self) -> None:
+        shipped = (Path(__file__).resolve().parent / "weights").resolve()
+        if not self.ship and Path(self.out).resolve().parent == shipped:
+            raise SRError(
+                f"TrainConfig.out: {self.out} would overwrite the shipped weights in {shipped}; "
+                "write elsewhere, or pass --ship (ship: true) to replace them on purpose"
+            )
+        if self.steps < 1 or self.checkpoint_every < 1:
+            raise SRError(f"TrainConfig: steps and checkpoint_every must be >= 1, got {self.steps}, {self.checkpoint_every}")
         if self.degradation is None:
             object.__setattr__(self, "degradation", "blur_noise" if self.model == "srmd" else "bicubic")
         if self.degradation not in ("bicubic", "blur_noise"):
@@ -206,7 +231,7 @@ def load_images(config: TrainConfig) -> tuple[list[np.ndarray], list[str]]:
             if img.ndim == 3:
                 img = img[..., ::-1]  # BGR -> RGB
             images.append(_grey(img))
-            sources.append(f"{folder.name}/{p.name}")
+            sources.append(f"{folder.name}/{p.name} sha256:{_sha256(p)[:16]}")
     for i in range(config.synthetic):
         images.append(synthetic_image(1000 + i))
         sources.append(f"synthetic_image(seed={1000 + i})")
@@ -214,6 +239,12 @@ def load_images(config: TrainConfig) -> tuple[list[np.ndarray], list[str]]:
     if not images:
         raise SRError("training: no image large enough for the patch size")
     return images, sources
+
+
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 # ---------------------------------------------------------- degradations
@@ -304,11 +335,40 @@ def evaluate(model, scale: int, images: dict[str, np.ndarray] | None = None, deg
 
 
 # --------------------------------------------------------------- training
-def train(config: TrainConfig, log=print) -> dict:
-    """Train ``config.model`` and write its weights file and card.
+#: configuration fields that do not change the trained weights
+_RUN_ONLY = ("out", "max_seconds", "threads", "checkpoint", "checkpoint_every", "ship", "eval_crop")
 
-    Returns the card (dict): data sources, steps, seconds, final loss,
-    held-out PSNR of the model and of bicubic.
+
+def _identity(config: TrainConfig) -> str:
+    return json.dumps({k: v for k, v in asdict(config).items() if k not in _RUN_ONLY}, sort_keys=True, default=str)
+
+
+def checkpoint_path(config: TrainConfig) -> Path:
+    return Path(config.checkpoint or f"{config.out}.ckpt")
+
+
+def _save_checkpoint(path: Path, config, model, opt, step, losses, seconds, rng, gen) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    torch.save({
+        "identity": _identity(config), "step": step, "losses": losses, "seconds": seconds,
+        "model": model.state_dict(), "opt": opt.state_dict(),
+        "numpy_rng": rng.bit_generator.state, "torch_gen": gen.get_state(), "torch_rng": torch.get_rng_state(),
+    }, tmp)
+    tmp.replace(path)  # a killed save leaves the previous checkpoint intact
+
+
+def train(config: TrainConfig, log=print) -> dict:
+    """Train ``config.model`` for ``config.steps`` steps and write its
+    weights file and card.
+
+    A checkpoint of the same configuration (:func:`checkpoint_path`) is
+    resumed: model, optimiser, step, losses and every random state, so
+    the result does not depend on where an earlier run stopped.
+
+    Returns the card (dict): data sources (with checksums), steps, whether
+    the schedule finished, seconds, final loss, held-out PSNR of the model
+    and of bicubic.
     """
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
@@ -319,11 +379,25 @@ def train(config: TrainConfig, log=print) -> dict:
     model.train()
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
     s = config.scale
-    t0 = time.perf_counter()
     losses: list[float] = []
-    step = 0
+    step, before = 0, 0.0
+    ckpt = checkpoint_path(config)
+    if ckpt.exists():
+        state = torch.load(ckpt, weights_only=False)
+        if state.get("identity") != _identity(config):
+            raise SRError(f"{ckpt}: checkpoint of another training configuration; delete it or change --out")
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["opt"])
+        step, losses, before = int(state["step"]), list(state["losses"]), float(state["seconds"])
+        rng.bit_generator.state = state["numpy_rng"]
+        gen.set_state(state["torch_gen"])
+        torch.set_rng_state(state["torch_rng"])
+        log(f"resumed {ckpt} at step {step} of {config.steps}")
+    t0 = time.perf_counter()
     milestones = (int(0.6 * config.steps), int(0.85 * config.steps))
-    while step < config.steps and time.perf_counter() - t0 < config.max_seconds:
+    start = step
+    # at least one step per call: a continued run always makes progress
+    while step < config.steps and (step == start or time.perf_counter() - t0 < config.max_seconds):
         hr = _sample_patches(images, config.batch, config.patch, rng)
         if config.degradation == "bicubic":
             lr_img = degrade_bicubic(hr, s)
@@ -345,8 +419,16 @@ def train(config: TrainConfig, log=print) -> dict:
             for g in opt.param_groups:
                 g["lr"] *= 0.5
         if step % 100 == 0:
-            log(f"step {step} loss {np.mean(losses[-100:]):.3e} ({time.perf_counter() - t0:.0f} s)")
-    seconds = time.perf_counter() - t0
+            log(f"step {step} loss {np.mean(losses[-100:]):.3e} ({before + time.perf_counter() - t0:.0f} s)")
+        if step % config.checkpoint_every == 0 and step < config.steps:
+            _save_checkpoint(ckpt, config, model, opt, step, losses, before + time.perf_counter() - t0, rng, gen)
+    finished = step >= config.steps
+    if finished:
+        ckpt.unlink(missing_ok=True)
+    else:
+        _save_checkpoint(ckpt, config, model, opt, step, losses, before + time.perf_counter() - t0, rng, gen)
+        log(f"stopped by max_seconds at step {step} of {config.steps}: NOT finished; the same command continues from {ckpt}")
+    seconds = before + time.perf_counter() - t0
     model.eval()
     eval_kw = {} if config.degradation == "bicubic" else {"blur_sigma": 1.0 * s / 2 + 0.2, "noise": 10 / 255}
     held_images = skimage_images(HELD_OUT)
@@ -362,13 +444,15 @@ def train(config: TrainConfig, log=print) -> dict:
         "held_out": list(HELD_OUT),
         "degradation": config.degradation,
         "steps": step,
+        "steps_planned": config.steps,
+        "finished": finished,
         "seconds": round(seconds, 1),
         "device": "cpu" if not next(model.parameters()).is_cuda else "cuda",
         "threads": config.threads,
         "final_loss_mse": float(np.mean(losses[-100:])) if losses else None,
         "heldout_psnr_db": held,
         "heldout_eval": {"degradation": config.degradation, **eval_kw, "centred": config.centred, "peak": 255, "border": s, "crop": config.eval_crop},
-        "config": {k: v for k, v in asdict(config).items() if k != "out"},
+        "config": {k: v for k, v in asdict(config).items() if k not in ("out", "checkpoint", "ship")},
         "torch": torch.__version__,
     }
     write_weights(model, config, card)
@@ -386,13 +470,14 @@ def write_weights(model, config: TrainConfig, card: dict) -> Path:
         f"# {config.model} x{config.scale} — tiledsm weights card",
         "",
         f"- file: `{out.name}` ({out.stat().st_size / 1e6:.2f} MB, {'float16' if config.half else 'float32'} storage, float32 at load)",
-        f"- trained: {card['steps']} Adam steps of {config.batch} patches {config.patch}x{config.patch} (HR), "
+        ("" if card.get("finished", True) else f"- **NOT FINISHED**: stopped by max_seconds at step {card['steps']} of {card['steps_planned']}\n")
+        + f"- trained: {card['steps']} Adam steps of {config.batch} patches {config.patch}x{config.patch} (HR), "
         f"{card['seconds']} s on {card['device']} with {card['threads']} thread(s), seed {config.seed}",
         f"- degradation: {config.degradation}" + (f" (blur sigma {config.blur_range} HR px, noise std {config.noise_range}, "
                                             f"{'centred' if config.centred else 'pixel s//2::s'} sampling)" if config.degradation == "blur_noise" else " (antialiased bicubic, torch)"),
         f"- data ({len(card['data'])} images): " + ", ".join(card["data"]),
         f"- held out (never trained on): {', '.join(HELD_OUT)} (scikit-image)",
-        f"- final training MSE (normalised, last 100 steps): {card['final_loss_mse']:.3e}",
+        f"- final training MSE (normalised, last 100 steps): {card['final_loss_mse']:.3e}" if card["final_loss_mse"] is not None else "- final training MSE: none (no step)",
         "",
         "Held-out PSNR (dB, 8-bit peak, border of `scale` px cropped), measured after training:",
         "",
