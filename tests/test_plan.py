@@ -490,6 +490,7 @@ EMITTERS = {
     "tiledsm/provenance.py": ("dsm", "run"),
     "tiledsm/io/stores.py": ("dsm", "run"),
     "tiledsm/cli/synth.py": ("synth",),
+    "tiledsm/sr/train.py": ("train-sr",),
     "tiledsm/cli/orient.py": ("orient",),
     "tiledsm/orient/stage.py": ("orient",),
     "tiledsm/cli/ortho.py": ("ortho",),

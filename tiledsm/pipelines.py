@@ -324,3 +324,4 @@ def run_train_sr(recipe, out: Path, cluster: ClusterConfig | None = None, overwr
 # import (explicit imports, no folder scanning).
 from tiledsm.workflows import deformation as _deformation  # noqa: E402,F401
 from tiledsm.workflows import sr_dsm as _sr_dsm  # noqa: E402,F401
+from tiledsm.workflows import ortho_sr as _ortho_sr  # noqa: E402,F401
