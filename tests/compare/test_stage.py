@@ -226,3 +226,35 @@ def test_cli_compare(synth, tmp_path, capsys):
     printed = json.loads(capsys.readouterr().out)
     assert printed["coregistration"]["dx_px"] == pytest.approx(1.0, abs=0.02)
     assert (tmp_path / "o" / "metrics.json").exists()
+
+
+def test_statistics_equal_numpy_on_the_stored_layers_in_any_chunking(synth, tmp_path):
+    """The one-pass statistics (reduced while dh.zarr is written) against numpy on the stored dh/stable/slope_class."""
+    from tiledsm.compare.stats import difference_statistics, slope_class_labels
+    from tiledsm.io import open_product
+
+    pre, other, *_ = _event(synth, (300, 260))
+    runs = {}
+    for chunks in (300, 64, 48):
+        res = compare_dsms(synth.to_dataarray(pre, "pre"), synth.to_dataarray(other, "post"), tmp_path / f"c{chunks}",
+                           CompareParams(chunks=chunks, cog=False, figures=False, report=False))
+        runs[chunks] = res
+    ds = open_product(runs[300].out_dir / "dh.zarr")
+    dh, st, cls = ds["dh"].values, ds["stable"].values, ds["slope_class"].values
+    width = runs[300].metrics["histogram"]["median_nmad_resolution_m"]
+    groups = {"all": np.ones(dh.shape, bool), "stable": st == 1, "unstable": st == 2}
+    groups.update({lab: (st == 1) & (cls == c) for c, lab in enumerate(slope_class_labels())})
+    for chunks, res in runs.items():
+        m = res.metrics
+        for name, sel in groups.items():
+            got = m["statistics"][name] if name in m["statistics"] else m["slope_classes"][name]
+            exact = difference_statistics(dh[sel], reference=pre[sel])
+            assert got["count"] == exact["count"], (chunks, name)
+            for key in ("mean", "std", "rmse", "mae", "mre", "min", "max"):
+                assert got[key] == pytest.approx(exact[key], rel=1e-6, abs=1e-9), (chunks, name, key)
+            assert abs(got["median"] - exact["median"]) <= width, (chunks, name)
+            assert abs(got["nmad"] - exact["nmad"]) <= 1.4826 * 2 * width, (chunks, name)
+        # and the products do not depend on the chunking
+        other_ds = open_product(res.out_dir / "dh.zarr")
+        assert np.array_equal(other_ds["dh"].values, dh, equal_nan=True)
+        assert np.array_equal(other_ds["stable"].values, st) and np.array_equal(other_ds["slope_class"].values, cls)

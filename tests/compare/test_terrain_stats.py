@@ -78,3 +78,49 @@ def test_histogram_stats_match_exact_statistics_in_blocks():
         width = 60.0 / 60000
         assert abs(got[name]["median"] - exact["median"]) <= width
         assert abs(got[name]["nmad"] - exact["nmad"]) <= 1.4826 * 2 * width
+
+
+@pytest.mark.parametrize("chunks", [(150, 170), (64, 64), (37, 101), (150, 1)])
+def test_lazy_histogram_stats_equal_numpy_oracle_in_any_chunking(chunks):
+    """``HistogramStats.lazy_total`` (blockwise partials + ``da.reduction``) against numpy on the whole array."""
+    import dask.array as da
+
+    rng = np.random.default_rng(5)
+    dh = (rng.standard_t(3, size=(150, 170)) * 0.7 + 0.2).astype(np.float32)
+    ref = rng.uniform(50, 60, dh.shape).astype(np.float32)
+    dh[rng.random(dh.shape) < 0.05] = np.nan
+    ref[rng.random(dh.shape) < 0.02] = np.nan
+    ref[3, :5] = 0.0  # |dh| / 0 is not a relative error: left out of MRE like numpy's non-finite ratios
+    hs = HistogramStats(("all", "pos", "none"), -30.0, 30.0, 60000)
+
+    def block(d, r):
+        members = np.stack([np.ones(d.shape, bool), d > 0.5, np.zeros(d.shape, bool)])
+        return hs.block_packed(d, r, members, np.broadcast_to(np.isfinite(r), members.shape))
+
+    lazy = hs.lazy_total(block, da.from_array(dh, chunks=chunks), da.from_array(ref, chunks=chunks))
+    total = lazy.compute(scheduler="synchronous")
+    assert total.shape == (3, hs.width)
+    got = hs.finalize(total)
+    width = 60.0 / 60000
+    for name, sel in (("all", np.ones(dh.shape, bool)), ("pos", dh > 0.5)):
+        v = dh[sel].astype(np.float64)
+        r = ref[sel].astype(np.float64)
+        v = v[np.isfinite(v)]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rel = np.abs(dh[sel].astype(np.float64)) / np.abs(r)
+        rel = rel[np.isfinite(rel)]
+        med = np.median(v)
+        assert got[name]["count"] == v.size
+        assert got[name]["cells"] == int(np.isfinite(ref).sum())
+        assert got[name]["mean"] == pytest.approx(v.mean(), rel=1e-12)
+        assert got[name]["std"] == pytest.approx(v.std(), rel=1e-9)
+        assert got[name]["rmse"] == pytest.approx(np.sqrt(np.mean(v * v)), rel=1e-12)
+        assert got[name]["mae"] == pytest.approx(np.abs(v).mean(), rel=1e-12)
+        assert got[name]["mre"] == pytest.approx(rel.mean(), rel=1e-12)
+        assert (got[name]["min"], got[name]["max"]) == (v.min(), v.max())
+        assert abs(got[name]["median"] - med) <= width
+        assert abs(got[name]["nmad"] - 1.4826 * np.median(np.abs(v - med))) <= 1.4826 * 2 * width
+    assert got["none"]["count"] == 0 and np.isnan(got["none"]["median"])
+    # the histogram (median/NMAD) does not depend on the chunking at all
+    whole = hs.lazy_total(block, da.from_array(dh), da.from_array(ref)).compute(scheduler="synchronous")
+    assert np.array_equal(total[:, : hs.bins + 2], whole[:, : hs.bins + 2])

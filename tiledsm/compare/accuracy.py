@@ -17,6 +17,7 @@ height; MRE is the mean of ``|d| / |reference|``.
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 
 import dask
@@ -25,15 +26,15 @@ import numpy as np
 import xarray as xr
 
 from tiledsm.compare.align import align_dsms, open_dsm
-from tiledsm.compare.stats import HistogramStats, merge_partials
+from tiledsm.compare.stats import HistogramStats
 
 __all__ = ["reference_accuracy"]
 
 
-def _partial(d: np.ndarray, ref: np.ndarray, mask: np.ndarray, hs: HistogramStats) -> dict:
+def _partial(d: np.ndarray, ref: np.ndarray, mask: np.ndarray, hs: HistogramStats) -> np.ndarray:
     evaluated = np.isfinite(ref) & mask
-    members = np.stack([evaluated])
-    return hs.block(np.where(evaluated, d, np.nan), ref, members, members)
+    members = evaluated[None]
+    return hs.block_packed(np.where(evaluated, d, np.nan), ref, members, members)
 
 
 def reference_accuracy(
@@ -92,9 +93,7 @@ def reference_accuracy(
         lo, hi = -1.0, 1.0  # no finite difference: only counts matter
     pad = max(1e-3, 1e-6 * (hi - lo))
     hs = HistogramStats(("all",), float(lo) - pad, float(hi) + pad, bins)
-    dd, rd, kd = (a.to_delayed().ravel() for a in (d, r, keep))
-    parts = [dask.delayed(_partial, pure=True)(a, b, c, hs) for a, b, c in zip(dd, rd, kd)]
-    total = dask.compute(merge_partials(parts))[0]
+    total = hs.lazy_total(partial(_partial, hs=hs), d, r, keep).compute()
     stats = hs.finalize(total)["all"]
     difference = pair.ref.copy(data=d)
     difference.attrs = {"long_name": "DSM - reference", "units": "m", "window": tuple(pair.ref_window)}

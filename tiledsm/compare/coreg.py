@@ -29,6 +29,7 @@ import math
 from dataclasses import asdict, dataclass, field
 from typing import Callable
 
+import numba
 import numpy as np
 
 from tiledsm.compare.terrain import slope_aspect
@@ -109,24 +110,39 @@ def shift_array(a: np.ndarray, dy: float, dx: float, kernel: str = "cubic") -> n
     halo of :func:`shift_halo` pixels equals the same cells of the whole
     array shifted (bit for bit).
     """
-    out = np.asarray(a, dtype=np.float64)
+    out = np.ascontiguousarray(a, dtype=np.float64)
     for axis, d in ((0, dy), (1, dx)):
         offs, wts = _kernel_taps(d, kernel)
-        halo = int(np.abs(offs).max())
-        padw = [(0, 0), (0, 0)]
-        padw[axis] = (halo, halo)
-        p = np.pad(out, padw, constant_values=np.nan)
-        n = out.shape[axis]
-        acc = None
-        for o, wk in zip(offs, wts):
-            if wk == 0.0:
-                continue
-            sl = [slice(None), slice(None)]
-            sl[axis] = slice(halo + o, halo + o + n)
-            term = wk * p[tuple(sl)]
-            acc = term if acc is None else acc + term
-        out = acc
+        keep = wts != 0.0
+        res = np.empty(out.shape, dtype=np.float64)
+        _shift_axis(out, offs[keep].astype(np.int64), wts[keep].astype(np.float64), axis, res)
+        out = res
     return out.astype(np.float32)
+
+
+@numba.njit(nogil=True, cache=True)
+def _shift_axis(a, offs, wts, axis, out):  # pragma: no cover - compiled
+    """``out[i, j] = sum_k wts[k] * a[(i, j) + offs[k] along axis]``, NaN outside ``a``.
+
+    The taps are added in order (``acc = w0 a0; acc = acc + w1 a1; ...``), the
+    operations of the array expression ``sum(w * shifted)``, so the result is
+    bit for bit the same as numpy's.
+    """
+    H, W = a.shape
+    for i in range(H):
+        for k in range(offs.size):
+            w = wts[k]
+            if axis == 0:
+                r = i + offs[k]
+                inside = 0 <= r < H
+                for j in range(W):
+                    term = w * (a[r, j] if inside else np.nan)
+                    out[i, j] = term if k == 0 else out[i, j] + term
+            else:
+                for j in range(W):
+                    c = j + offs[k]
+                    term = w * (a[i, c] if 0 <= c < W else np.nan)
+                    out[i, j] = term if k == 0 else out[i, j] + term
 
 
 # --------------------------------------------------------------------------- parameters & result

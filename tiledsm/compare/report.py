@@ -1,8 +1,9 @@
 """Figures and the HTML report of a DSM comparison.
 
 Figures are drawn from decimated arrays (longest edge
-``params.quicklook_size``; decimation by striding, read lazily) and from the
-statistics' histogram, so they cost little whatever the grid size:
+``params.quicklook_size``; strided, gathered by the stage in the same pass
+that computes ``dh``, so no process holds a full-resolution grid) and from
+the statistics' histogram, so they cost little whatever the grid size:
 
 - ``dh``: dh over the reference hillshade, diverging colours symmetric about
   0 clipped at the 98th percentile of ``|dh|``, with colour bar;
@@ -30,8 +31,12 @@ def _png(fig) -> bytes:
     return buf.getvalue()
 
 
-def make_figures(stored, pair, hs, part, stats, labels, params, geoms=()) -> dict[str, bytes]:
-    """PNG bytes of the three figures (see the module notes)."""
+def make_figures(dh, ref, step: int, pair, hs, part, stats, labels, params, geoms=()) -> dict[str, bytes]:
+    """PNG bytes of the three figures (see the module notes).
+
+    ``dh`` and ``ref`` are the common grid's difference and reference
+    heights strided by ``step`` cells (``a[::step, ::step]``).
+    """
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -39,10 +44,8 @@ def make_figures(stored, pair, hs, part, stats, labels, params, geoms=()) -> dic
 
     from tiledsm.compare.terrain import hillshade, metric_steps
 
-    H, W = pair.ref.shape
-    step = max(1, math.ceil(max(H, W) / params.quicklook_size))
-    dh = np.asarray(stored["dh"].data[::step, ::step].compute(), dtype=np.float64)
-    ref = np.asarray(pair.ref.data[::step, ::step].compute(), dtype=np.float64)
+    dh = np.asarray(dh, dtype=np.float64)
+    ref = np.asarray(ref, dtype=np.float64)
     ys = pair.ref.y.values[::step]
     sx, sy = metric_steps(pair.crs, pair.transform, ys)
     shade = hillshade(ref, sx * step, sy * step)

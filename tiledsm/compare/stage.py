@@ -20,10 +20,16 @@ is fitted; products are written to a hidden staging folder inside
 
 Tiling: the common grid is chunked (``params.chunks``); the shift is
 applied with ``map_overlap`` (halo = ``ceil(|shift|)`` + kernel support),
-slope with a halo of 1, polygon masks with ``map_blocks``, and statistics
-are per-block histograms reduced in a tree, so memory per task is a few
-blocks whatever the grid size. Computation runs on the current dask
-scheduler (wrap the call in :func:`tiledsm.cluster.compute_context`).
+slope with a halo of 1, polygon masks and the stable/slope-class layers with
+``map_blocks`` (compiled kernels, same arithmetic as their numpy forms).
+After the fit, **one pass** (one ``dask.compute``) writes ``dh.zarr`` and,
+from the same ``dh`` blocks, reduces the statistics (per-block packed
+histograms merged by ``da.reduction``) and gathers the strided arrays the
+figures draw; ``dh.tif`` is then converted from the store one row of chunks
+at a time. No process holds a grid-sized array: memory per task is a few
+blocks and the client holds one row of chunks, whatever the grid size.
+Computation runs on the current dask scheduler (wrap the call in
+:func:`tiledsm.cluster.compute_context`).
 """
 
 from __future__ import annotations
@@ -36,10 +42,12 @@ import shutil
 import time
 import uuid
 from dataclasses import asdict, dataclass, field, replace
+from functools import lru_cache, partial
 from pathlib import Path
 
 import dask
 import dask.array as da
+import numba
 import numpy as np
 import rioxarray  # noqa: F401  (registers .rio)
 import xarray as xr
@@ -56,8 +64,8 @@ from tiledsm.compare.coreg import (
     shift_array,
     shift_halo,
 )
-from tiledsm.compare.stable import exclusion_mask, exclusion_mask_lazy, read_polygons, stable_cells
-from tiledsm.compare.stats import SLOPE_CLASSES, HistogramStats, merge_partials, slope_class_labels
+from tiledsm.compare.stable import exclusion_mask, exclusion_mask_lazy, read_polygons
+from tiledsm.compare.stats import SLOPE_CLASSES, HistogramStats, slope_class_labels
 from tiledsm.compare.terrain import metric_steps, slope_percent
 from tiledsm.errors import InputFileError, NoOverlapError, TiledsmError
 
@@ -242,40 +250,125 @@ def difference_lazy(pair: AlignedPair, coreg: Coregistration, kernel: str = "cub
     return (other - pair.ref.data).astype(np.float32)
 
 
-def _slope_block(z, yy, crs, transform):
-    sx, sy = metric_steps(crs, transform, yy[:, yy.shape[1] // 2])  # column 0 may be the NaN halo
+def _slope_block(z, crs, transform, row0s, depth, block_info=None):
+    """Slope (percent) of one block read with a halo of ``depth`` rows/columns.
+
+    The rows' metric steps come from the grid (``row0s[i]``: first row of
+    block ``i``), so no coordinate array travels with the blocks; the halo
+    rows' own steps are never used (they are trimmed).
+    """
+    i = block_info[0]["chunk-location"][0]
+    rows = row0s[i] - depth + np.arange(z.shape[0], dtype=np.float64)
+    sx, sy = metric_steps(crs, transform, transform.f + transform.e * (rows + 0.5))
     return slope_percent(z, sx, sy).astype(np.float32)
 
 
 def _slope_lazy(pair: AlignedPair) -> da.Array:
+    """Reference slope (percent) by ``map_overlap`` (halo 1: Horn's 3 x 3 kernel)."""
     ref = pair.ref.data
-    y = da.from_array(pair.ref.y.values.reshape(-1, 1), chunks=(ref.chunks[0], 1))
-    yy = da.broadcast_to(y, ref.shape, chunks=ref.chunks)
+    row0s = np.cumsum((0,) + ref.chunks[0][:-1])
     return da.map_overlap(
-        _slope_block, ref, yy, depth=1, boundary=np.nan, dtype=np.float32,
-        meta=np.empty((0, 0), np.float32), crs=pair.crs, transform=pair.transform,
+        partial(_slope_block, crs=pair.crs, transform=pair.transform, row0s=row0s, depth=1),
+        ref, depth=1, boundary=np.nan, dtype=np.float32, meta=np.empty((0, 0), np.float32),
     )
 
 
 def _class_block(slope_pct, excluded, dh, bounds, max_slope_deg, med, nmad_v, k):
-    cls = np.full(slope_pct.shape, NO_CLASS, dtype=np.uint8)
-    ok = np.isfinite(slope_pct)
-    cls[ok] = (np.searchsorted(np.asarray(bounds), slope_pct[ok], side="right") - 1).astype(np.uint8)
-    st = np.full(dh.shape, STABLE_NONE, dtype=np.uint8)
-    valid = np.isfinite(dh)
-    slope_deg = np.degrees(np.arctan(slope_pct / 100.0))
-    stable = valid & ok & stable_cells(dh, slope_deg, excluded, med, nmad_v, k, max_slope_deg)
-    st[valid] = STABLE_NO
-    st[stable] = STABLE_YES
-    return np.stack([st, cls])
+    """``stack([stable, slope_class])`` (uint8) of one block, in one compiled pass.
+
+    The rules of :func:`~tiledsm.compare.stable.stable_cells` with the
+    arithmetic of its numpy form on float32 blocks: the slope limit as the
+    float32 threshold :func:`max_slope_percent`, the outlier test
+    ``|dh - med| <= k * nmad`` in float32 (Python scalars are weak in numpy).
+    """
+    out = np.empty((2,) + dh.shape, dtype=np.uint8)
+    use_nmad = bool(nmad_v > 0)
+    _classify(
+        np.asarray(slope_pct, np.float32), np.asarray(excluded, bool), np.asarray(dh, np.float32),
+        np.asarray(bounds, np.float64), max_slope_percent(max_slope_deg), np.float32(med),
+        np.float32(k * nmad_v) if use_nmad else np.float32(0), use_nmad, out,
+    )
+    return out
 
 
-def _stats_block(dh, ref, layers, hs: HistogramStats, nclass: int):
-    st, cls = layers[0], layers[1]
-    members = [np.ones(dh.shape, bool), st == STABLE_YES, st == STABLE_NO]
-    members += [(st == STABLE_YES) & (cls == c) for c in range(nclass)]
-    evaluated = np.isfinite(ref)
-    return hs.block(dh, ref, np.stack(members), np.broadcast_to(evaluated, (len(members),) + dh.shape))
+@lru_cache(maxsize=16)
+def max_slope_percent(max_slope_deg: float) -> np.float32:
+    """The largest float32 slope (percent) ``p`` with ``degrees(arctan(p / 100)) <= max_slope_deg``
+    evaluated by numpy in float32 (the test of the stable-terrain rule, as a threshold)."""
+
+    def f(bits):
+        p = bits.astype(np.int32).view(np.float32)
+        return np.degrees(np.arctan(p / 100.0)) <= max_slope_deg
+
+    lo, hi = 0, int(np.array(np.inf, np.float32).view(np.int32))  # bit patterns of 0 and +inf
+    if not f(np.array([lo] * 16))[0]:
+        return np.float32(-np.inf)
+    if f(np.array([hi] * 16))[0]:
+        return np.float32(np.inf)
+    while hi - lo > 1:  # f(lo) true, f(hi) false; f is non-decreasing in p
+        cand = np.unique(np.linspace(lo, hi, 4097).astype(np.int64))
+        ok = f(cand)
+        i = int(np.argmin(ok))  # first false
+        lo, hi = int(cand[i - 1]), int(cand[i])
+    return np.array([lo], np.int32).view(np.float32)[0]
+
+
+@numba.njit(nogil=True, cache=True)
+def _classify(slope_pct, excluded, dh, bounds, max_pct, med, tol, use_nmad, out):  # pragma: no cover - compiled
+    H, W = dh.shape
+    nb = bounds.size
+    for i in range(H):
+        for j in range(W):
+            s = slope_pct[i, j]
+            cls = NO_CLASS
+            slope_ok = np.isfinite(s)
+            if slope_ok:
+                c = 0
+                for b in range(nb):
+                    if bounds[b] <= np.float64(s):
+                        c = b + 1
+                cls = c - 1
+            v = dh[i, j]
+            st = STABLE_NONE
+            if np.isfinite(v):
+                st = STABLE_NO
+                if slope_ok and not excluded[i, j] and s <= max_pct:
+                    if (abs(v - med) <= tol) if use_nmad else True:
+                        st = STABLE_YES
+            out[0, i, j] = st
+            out[1, i, j] = cls
+
+
+def _stats_groups(nclass: int) -> np.ndarray:
+    """Groups (all, stable, unstable, stable by slope class) as unions of the cell
+    classes of :func:`_stats_block`: stable in slope class ``c`` (``c``),
+    stable without a class (``nclass``), not stable (``nclass + 1``)."""
+    m = np.zeros((3 + nclass, nclass + 2), dtype=bool)
+    m[0] = True
+    m[1, : nclass + 1] = True
+    m[2, nclass + 1] = True
+    m[3:, :nclass] = np.eye(nclass, dtype=bool)
+    return m
+
+
+def _stats_block(dh, ref, st, cls, hs: HistogramStats, nclass: int) -> np.ndarray:
+    """Packed statistics partial of one block: all, stable, unstable, stable by slope class."""
+    codes = np.empty(st.shape, dtype=np.int64)
+    _stats_codes(st, cls, nclass, codes)
+    return hs.block_codes(dh, ref, codes, _stats_groups(nclass), np.isfinite(ref))
+
+
+@numba.njit(nogil=True, cache=True)
+def _stats_codes(st, cls, nclass, out):  # pragma: no cover - compiled
+    H, W = st.shape
+    for i in range(H):
+        for j in range(W):
+            if st[i, j] == STABLE_YES:
+                out[i, j] = min(np.int64(cls[i, j]), nclass)
+            elif st[i, j] == STABLE_NO:
+                out[i, j] = nclass + 1
+            else:
+                out[i, j] = -1
 
 
 # --------------------------------------------------------------------------- stage
@@ -392,31 +485,41 @@ def compare_dsms(ref, other, out_dir: str | Path, params: CompareParams = Compar
 
 
 def _write_products(ds, pair, coreg, geoms, params, staging: Path, t0: float, t_fit: float) -> dict:
-    from tiledsm.io import open_product, write_cog, write_zarr
+    """Write every product into ``staging``.
+
+    One pass over the grid (one ``dask.compute``) writes ``dh.zarr`` and, from
+    the same ``dh`` blocks, reduces the statistics (``da.reduction`` of
+    per-block histograms) and gathers the strided (decimated) arrays the
+    figures draw; the COG is then converted from the store.
+    """
+    from tiledsm.io import open_product, write_zarr
 
     products = {}
     t1 = time.perf_counter()
-    write_zarr(ds, staging / "dh.zarr")
-    products["dh_zarr"] = staging / "dh.zarr"
-    t_diff = time.perf_counter() - t1
-
-    # ---- statistics from the stored layers (one lazy pass)
-    t2 = time.perf_counter()
-    stored = open_product(staging / "dh.zarr")
     s = max(coreg.nmad_after, 0.01) if math.isfinite(coreg.nmad_after) else 1.0
     med = coreg.median_after if math.isfinite(coreg.median_after) else 0.0
     half = max(20.0 * s, 20.0)  # +-20 NMAD (>= 20 m): resolution NMAD/1600 with 65536 bins
     labels = slope_class_labels(params.slope_classes)
     groups = ("all", "stable", "unstable") + tuple(f"slope {lab}" for lab in labels)
     hs = HistogramStats(groups, med - half, med + half, params.hist_bins)
-    dh_d = stored["dh"].data
-    lay = da.stack([stored["stable"].data, stored["slope_class"].data]).rechunk((2,) + dh_d.chunks)
-    ref_d = pair.ref.data.rechunk(dh_d.chunks)
-    parts = [
-        dask.delayed(_stats_block, pure=True)(d, r, l, hs, len(labels))
-        for d, r, l in zip(dh_d.to_delayed().ravel(), ref_d.to_delayed().ravel(), lay.to_delayed().ravel())
-    ]
-    (part,) = dask.compute(merge_partials(parts))
+    dh_d = ds["dh"].data
+    total = hs.lazy_total(
+        partial(_stats_block, hs=hs, nclass=len(labels)),
+        dh_d, pair.ref.data.rechunk(dh_d.chunks), ds["stable"].data, ds["slope_class"].data,
+    )
+    H, W = pair.ref.shape
+    step = max(1, math.ceil(max(H, W) / params.quicklook_size))
+    wanted = [total]
+    if params.figures or params.report:
+        wanted += [dh_d[::step, ::step], pair.ref.data[::step, ::step]]
+    got: list = []
+
+    def compute_all(store_delayed):
+        got.extend(dask.compute(store_delayed, *wanted)[1:])
+
+    write_zarr(ds, staging / "dh.zarr", compute=compute_all)
+    products["dh_zarr"] = staging / "dh.zarr"
+    part = got[0]
     stats = hs.finalize(part)
     n_all = stats["all"]["count"]
     for name, st in stats.items():
@@ -424,9 +527,8 @@ def _write_products(ds, pair, coreg, geoms, params, staging: Path, t0: float, t_
         if name != "all":
             st.pop("completeness", None)
             st.pop("cells", None)
-    t_stats = time.perf_counter() - t2
+    t_pass = time.perf_counter() - t1
 
-    H, W = pair.ref.shape
     yc = float(pair.ref.y.values[H // 2])
     sx, sy = metric_steps(pair.crs, pair.transform, np.array([yc]))
     creg = coreg.ground(pair.crs, pair.transform, float(sx[0, 0]), float(sy[0, 0]))
@@ -460,20 +562,23 @@ def _write_products(ds, pair, coreg, geoms, params, staging: Path, t0: float, t_
     # ---- exports
     t3 = time.perf_counter()
     if params.cog:
-        write_cog(stored["dh"], staging / "dh.tif")
+        from tiledsm.compare.export import cog_from_store
+
+        cog_from_store(open_product(staging / "dh.zarr")["dh"], staging / "dh.tif")
         products["dh_tif"] = staging / "dh.tif"
+    t_cog = time.perf_counter() - t3
     figures = {}
     if params.figures or params.report:
         from tiledsm.compare.report import make_figures
 
-        figures = make_figures(stored, pair, hs, part, stats, labels, params, geoms)
+        figures = make_figures(got[1], got[2], step, pair, hs, hs.unpack(part), stats, labels, params, geoms)
         if params.figures:
             for name, png in figures.items():
                 (staging / f"{name}.png").write_bytes(png)
                 products[name] = staging / f"{name}.png"
     metrics["timings_s"] = {
-        "fit": t_fit, "difference_zarr": t_diff, "statistics": t_stats,
-        "exports": time.perf_counter() - t3, "total": time.perf_counter() - t0,
+        "fit": t_fit, "difference_statistics_zarr": t_pass, "cog": t_cog,
+        "figures_report": time.perf_counter() - t3 - t_cog, "total": time.perf_counter() - t0,
     }
     metrics = _jsonable(metrics)
     (staging / "metrics.json").write_text(json.dumps(metrics, indent=2))

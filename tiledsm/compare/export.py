@@ -1,0 +1,43 @@
+"""The ``dh`` Cloud-Optimised GeoTIFF, converted from the comparison's zarr store.
+
+:func:`cog_from_store` streams the stored ``dh`` (one row of zarr chunks at a
+time, read in this process: the chunks are already computed, so no task
+graph and no worker is involved) through :func:`tiledsm.io.write_cog`, with
+GDAL's compression and overview threads on every core (the workers are idle
+by then) and its block cache bounded, so the process never holds more than a
+row of chunks plus ``cache_mib`` whatever the grid size.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import dask
+import xarray as xr
+
+__all__ = ["cog_from_store"]
+
+
+def cog_from_store(dh: xr.DataArray, path: str | os.PathLike, *, threads: str | int = "ALL_CPUS", cache_mib: int = 256) -> Path:
+    """Write ``dh`` (a DataArray opened lazily from a zarr store) as a COG.
+
+    Parameters
+    ----------
+    dh : xarray.DataArray
+        ``(y, x)`` float32 heights differences (metres, NaN = none) with CRS
+        and transform, dask-backed by a zarr store.
+    path : path-like
+        The ``.tif`` to write (atomically, by :func:`tiledsm.io.write_cog`).
+    threads : int or "ALL_CPUS"
+        GDAL compression threads (``GDAL_NUM_THREADS``).
+    cache_mib : int
+        GDAL block cache (``GDAL_CACHEMAX``, MiB): bounds the memory of the
+        overview computation.
+    """
+    import rasterio
+
+    from tiledsm.io import write_cog
+
+    with rasterio.Env(GDAL_NUM_THREADS=str(threads), GDAL_CACHEMAX=int(cache_mib)), dask.config.set(scheduler="threads"):
+        return write_cog(dh, path)
