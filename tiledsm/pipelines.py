@@ -222,6 +222,14 @@ def run_dsm(
     t_start = time.perf_counter()
     inp = recipe.input
     truth_mask = None
+    orient_doc = None
+    if recipe.orient is not None and inp.images is not None:
+        # orient first; the DSM uses the corrected copies (a plan made on the original images is stale)
+        from tiledsm.orient.spec import orient_for_recipe
+
+        images, rpcs, orient_doc = orient_for_recipe(inp.images, inp.rpcs, recipe.orient, out / "orient", overwrite=overwrite)
+        recipe = recipe.model_copy(update={"input": inp.model_copy(update={"images": images, "rpcs": rpcs})})
+        inp, plan = recipe.input, None
     limits = plan.limits if plan is not None else Limits()
     if inp.synth is not None:
         from tiledsm.recipes import InputSpec
@@ -242,6 +250,8 @@ def run_dsm(
         prep.ds, out, cluster=cluster, cog=recipe.output.cog, quicklook=recipe.output.quicklook, overwrite=overwrite
     )
     metrics: dict = {"pipeline": "dsm", "report": report, "timings": timings}
+    if orient_doc is not None:
+        metrics["orient"] = orient_doc
     from tiledsm.io import open_product
 
     height = open_product(out / "dsm.zarr")["height"]

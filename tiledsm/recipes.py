@@ -24,6 +24,9 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+from tiledsm.orient.spec import OrientSpec  # noqa: E402  (derives from _Strict above)
+
+
 class SynthInput(_Strict):
     """A synthetic scene made by :mod:`tiledsm.synth` (known truth)."""
 
@@ -235,6 +238,7 @@ class DSMRecipe(_Strict):
     match: MatchSpec = MatchSpec()
     cluster: ClusterSpec = ClusterSpec()
     output: OutputSpec = OutputSpec()
+    orient: Optional[OrientSpec] = Field(None, description="orient the images first (GCPs, reference DEM); the DSM uses the corrected RPCs")
 
 
 class TrainSRRecipe(_Strict):
@@ -314,7 +318,8 @@ def load_recipe(path: str | Path, overrides: dict[str, Any] | None = None) -> Ba
         raise RecipeError(_format_errors(path, exc)) from None
 
 
-_PATH_KEYS = {"images", "rpcs", "reference", "like", "geoid", "stable_mask", "pre", "post", "dem", "truth_dh", "truth_mask"}
+_PATH_KEYS = {"images", "rpcs", "reference", "like", "geoid", "stable_mask", "pre", "post", "dem", "truth_dh", "truth_mask",
+              "gcps", "check_points"}
 
 
 def _resolve_paths(data: Any, base: Path, key: str | None = None) -> Any:

@@ -55,3 +55,16 @@ def relative_error(rpcs, true, lon, lat, h) -> float:
     pt = np.tile(np.arange(n), v)
     _, res = intersect(rpcs, img, pt, p[:, :, 0].ravel(), p[:, :, 1].ravel(), n)
     return float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
+
+
+def write_gcp_files(true, names, folder):
+    """``gcps.csv`` (4 corner points, 0.05 px noise) and ``checks.csv`` (20
+    random points) of a 512-px scene seen by the ``true`` cameras, in
+    ``folder``; returns both paths."""
+    from tiledsm.orient.simulate import corner_points, ground_points, write_points_csv
+
+    gl, ga, gh = corner_points(true[0], (512, 512), (300, 400), seed=1)
+    write_points_csv(folder / "gcps.csv", names, true, gl, ga, gh, noise_px=0.05, shape=(512, 512))
+    cl, ca, ch = ground_points(true[0], (512, 512), (300, 400), 20, seed=2)
+    write_points_csv(folder / "checks.csv", names, true, cl, ca, ch, prefix="c", shape=(512, 512))
+    return folder / "gcps.csv", folder / "checks.csv"

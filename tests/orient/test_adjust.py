@@ -67,10 +67,9 @@ def _surface(lon, lat):
     return 300.0 + 60.0 * np.sin(np.radians(lon - 5.2) * 900) * np.cos(np.radians(lat - 44.2) * 700)
 
 
-def test_reference_dem_removes_height_bias(cameras3):
-    """No GCP, tie points on the terrain, the terrain as reference DEM:
-    the height bias of points intersected with the corrected cameras drops
-    from metres to <= 0.2 m."""
+def _dem_case(cameras3, dem, params):
+    """Tie points on ``_surface`` seen by 2 biased views, ``dem`` as the
+    reference: (height bias before, after, AdjustResult)."""
     true, biased = (c[:2] for c in cameras3)
     rng = np.random.default_rng(5)
     r, c = rng.uniform(50, SIZE - 50, (2, 300))
@@ -79,7 +78,7 @@ def test_reference_dem_removes_height_bias(cameras3):
         lon, lat = true[0].localize(r, c, h)
         h = _surface(lon, lat)
     block = synthetic_block(true, biased, (lon, lat, h), noise_px=0.1, use_dem=True)
-    res = adjust_block(biased, [AFFINE] * 2, block, dem=_surface, params=AdjustParams(dem_sigma_m=1.0))
+    res = adjust_block(biased, [AFFINE] * 2, block, dem=dem, params=params)
 
     def height_bias(rpcs):
         p = project_all(true, lon, lat, h)
@@ -87,10 +86,37 @@ def test_reference_dem_removes_height_bias(cameras3):
         g, _ = intersect(rpcs, img, pt, p[:, :, 0].ravel(), p[:, :, 1].ravel(), 300)
         return float(np.median(g[:, 2] - h))
 
-    before, after = height_bias(biased), height_bias(_corrected(biased, res, [AFFINE] * 2))
-    print("height bias before", before, "after", after)
-    assert abs(before) > 3.0 and abs(after) <= 0.2
-    assert res.dem_used.all()
+    return height_bias(biased), height_bias(_corrected(biased, res, [AFFINE] * 2)), res
+
+
+def test_reference_dem_removes_height_bias(cameras3):
+    """No GCP, tie points on the terrain, the terrain as reference DEM:
+    the height bias of points intersected with the corrected cameras drops
+    from metres to <= 0.2 m."""
+    before, after, res = _dem_case(cameras3, _surface, AdjustParams(dem_sigma_m=1.0))
+    print("height bias before", before, "after", after, "DEM kept", res.dem_used.mean())
+    assert abs(before) > 3.0 and abs(after) <= 0.05
+    assert res.dem_used.mean() >= 0.95  # exact DEM: only the tails of the noise are clipped
+
+
+def _skewed_dem(lon, lat):
+    """``_surface`` raised by 0-5.6 m on about a quarter of the ground: what a
+    coarse DSM cell does beside buildings (skewed, one-sided error)."""
+    u = np.sin(np.radians(lon - 5.2) * 2e5) * np.sin(np.radians(lat - 44.2) * 1.7e5)
+    return _surface(lon, lat) + 8.0 * np.clip(u - 0.3, 0.0, None)
+
+
+def test_skewed_dem_errors_do_not_shift_the_datum(cameras3):
+    """Regression (issue 10, DEM-only case left 0.34 m): one-sided DEM
+    errors on part of the points. With a fixed threshold of metres they all
+    count and the datum follows their mean; the robust DEM sigma (MAD) and
+    rejection keep the height bias near 0."""
+    before, fixed, _ = _dem_case(cameras3, _skewed_dem, AdjustParams(dem_robust_sigma=False, dem_reject_k=3.0))
+    _, robust, res = _dem_case(cameras3, _skewed_dem, AdjustParams())
+    print("height bias before", before, "fixed 9 m threshold", fixed, "robust", robust,
+          "DEM kept", res.dem_used.mean(), "s0", res.info["dem_sigma_m"])
+    assert fixed > 0.5
+    assert abs(robust) <= 0.08
 
 
 def test_blunder_gcp_rejected_by_id(cameras3):

@@ -10,21 +10,17 @@ import warnings
 import numpy as np
 import pytest
 import rasterio
+from conftest import write_gcp_files
 
 from tiledsm.cli import main
 from tiledsm.geometry import RPC, find_camera
-from tiledsm.orient.simulate import corner_points, ground_points, write_points_csv
+from tiledsm.orient.simulate import ground_points
 
 
 @pytest.fixture(scope="module")
 def points(scene2):
     info, true, biased, h, root = scene2
-    names = [p.name for p in biased]
-    gl, ga, gh = corner_points(true[0], (512, 512), (300, 400), seed=1)
-    write_points_csv(root / "gcps.csv", names, true, gl, ga, gh, noise_px=0.05, shape=(512, 512))
-    cl, ca, ch = ground_points(true[0], (512, 512), (300, 400), 20, seed=2)
-    write_points_csv(root / "checks.csv", names, true, cl, ca, ch, prefix="c", shape=(512, 512))
-    return root / "gcps.csv", root / "checks.csv"
+    return write_gcp_files(true, [p.name for p in biased], root)
 
 
 @pytest.fixture(scope="module")

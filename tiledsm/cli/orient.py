@@ -54,15 +54,8 @@ def run(args: argparse.Namespace) -> int:
     if args.dem:
         from tiledsm.geometry.rpc_io import find_camera
 
-        lon_r, lat_r = [], []
-        for img in args.images:
-            rpc, _ = find_camera(img)
-            (lo, hi), (la, lb) = rpc.ground_box(_window(img),
-                                                (rpc.height_off - abs(rpc.height_scale),
-                                                 rpc.height_off + abs(rpc.height_scale)))
-            lon_r += [lo, hi]
-            lat_r += [la, lb]
-        dem = ReferenceDEM.open(args.dem, (min(lon_r), max(lon_r)), (min(lat_r), max(lat_r)), geoid=args.geoid)
+        dem = ReferenceDEM.for_cameras(args.dem, [find_camera(img)[0] for img in args.images],
+                                       [_window(img)[1::2] for img in args.images], geoid=args.geoid)
     with dask.config.set(scheduler="threads", num_workers=args.workers):
         o = orient_images(args.images, args.gcps, args.check_points, dem, params)
     doc = write_orientation(o, args.out, params, extra={"command": "tiledsm orient", "inputs": {

@@ -12,7 +12,22 @@ each a residual divided by its standard deviation:
 - optionally a reference DEM on tie-point heights:
   ``h - DEM(lon, lat)``, metres (the DEM-assisted RFM block adjustment of
   Zhang et al. 2016, "DEM-assisted RFM block adjustment of pushbroom
-  nadir viewing HRS imagery", IEEE TGRS 54(2), 1025-1034);
+  nadir viewing HRS imagery", IEEE TGRS 54(2), 1025-1034), each with the
+  standard deviation ``sqrt(dem_sigma_m**2 + slope_i**2)``: ``slope_i`` the
+  DEM's representativeness error at the point (cell size x gradient,
+  :attr:`Block.dem_slope_sigma_m`). The DEM fixes the block's datum through
+  the weighted *mean* of these residuals, so those of buildings, trees and
+  of ground beside them (a coarse cell averages both) must be rejected:
+  their distribution is skewed, and a fixed threshold of metres keeps a
+  biased tail. After every solve the residuals' scatter ``s0`` is
+  re-estimated (1.4826 x their median absolute deviation) and those beyond
+  ``dem_reject_k * s0`` of their median are dropped (the weights stay
+  those of ``dem_sigma_m``: DEM errors are correlated in space, and the
+  scatter would make a few hundred points outweigh GCPs). One more unknown, the
+  DEM's overall vertical offset (prior :attr:`AdjustParams.dem_offset_sigma_m`
+  around 0), takes the DEM's own bias when GCPs fix the datum (the DEM's
+  point scatter ``s0`` says nothing of it); without GCPs moving the block
+  is cheaper and the offset stays 0: the DEM is the datum;
 - a weak prior on every bias term (zero, :attr:`AdjustParams.prior_shift_px`
   / :attr:`AdjustParams.prior_linear`): it fixes the datum when nothing
   absolute is observed (tie points only) and is negligible otherwise.
@@ -73,6 +88,11 @@ class Block:
         ``(n,)`` bool: the point's height is observed on the reference DEM.
     point_ids : numpy.ndarray
         ``(n,)`` str, for reports.
+    dem_slope_sigma_m : numpy.ndarray, optional
+        ``(n,)`` representativeness error of the reference DEM at each
+        point, metres (e.g.
+        :meth:`tiledsm.orient.dem.ReferenceDEM.slope_sigma`), added in
+        quadrature to the DEM's noise; None: 0.
     """
 
     img: np.ndarray
@@ -84,6 +104,7 @@ class Block:
     prior_sigma_m: np.ndarray
     use_dem: np.ndarray
     point_ids: np.ndarray
+    dem_slope_sigma_m: np.ndarray | None = None
 
     @property
     def n_points(self) -> int:
@@ -97,8 +118,18 @@ class AdjustParams:
     Attributes
     ----------
     dem_sigma_m : float
-        Standard deviation of a tie-point height against the reference DEM,
-        metres (SRTM: a few metres).
+        Standard deviation of a tie-point height against the reference DEM
+        on flat ground, metres (SRTM: a few metres).
+    dem_robust_sigma : bool
+        Re-estimate the residuals' scatter ``s0`` after every solve
+        (1.4826 x MAD of the kept DEM residuals, at least
+        :attr:`dem_min_sigma_m`) and reject with it; False: with
+        ``dem_sigma_m``.
+    dem_min_sigma_m : float
+        Floor of the re-estimated ``s0``, metres.
+    dem_offset_sigma_m : float
+        Prior standard deviation of the DEM's overall vertical offset,
+        metres (its absolute accuracy: SRTM about 5 m).
     prior_shift_px, prior_linear : float
         Weak priors (standard deviations around 0) of ``A0``/``B0``
         (pixels) and of the linear terms: they fix the datum of a block
@@ -111,21 +142,25 @@ class AdjustParams:
         An image measurement is rejected when its residual exceeds
         ``max(min_reject_px, reject_k * median residual)`` pixels.
     dem_reject_k : float
-        A DEM height observation is dropped when its residual exceeds
-        ``dem_reject_k * dem_sigma_m`` (buildings, trees, DEM voids).
+        A DEM height observation is dropped when its residual, less the
+        median residual, exceeds ``dem_reject_k * s0`` (buildings, trees,
+        DEM voids); one dropped earlier and now within is taken back.
     max_rounds : int
         Solve / reject rounds.
     """
 
     dem_sigma_m: float = 3.0
+    dem_robust_sigma: bool = True
+    dem_min_sigma_m: float = 0.1
+    dem_offset_sigma_m: float = 5.0
     prior_shift_px: float = 100.0
     prior_linear: float = 1e-3
     loss: str = "soft_l1"
     f_scale: float = 3.0
     reject_k: float = 5.0
     min_reject_px: float = 1.0
-    dem_reject_k: float = 3.0
-    max_rounds: int = 4
+    dem_reject_k: float = 2.5
+    max_rounds: int = 6
 
 
 @dataclass(frozen=True)
@@ -271,14 +306,16 @@ class _Problem:
     """Residuals and sparse Jacobian of one solve."""
 
     def __init__(self, rpcs, models, block: Block, dem: DemFn | None, params: AdjustParams,
-                 active: np.ndarray, dem_active: np.ndarray):
+                 active: np.ndarray, dem_active: np.ndarray, dem_sigma: np.ndarray):
         self.rpcs, self.models, self.b, self.dem, self.p = rpcs, models, block, dem, params
         self.active = active.astype(float)
         self.dem_active = dem_active
+        self.dem_sigma = dem_sigma
         sizes = [m.size for m in models]
         self.param_off = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
         self.n_params = int(self.param_off[-1])
-        self.n_unknown = self.n_params + 3 * block.n_points
+        self.off_col = self.n_params + 3 * block.n_points  # the DEM's vertical offset
+        self.n_unknown = self.off_col + 1
         self.prior_pts = np.flatnonzero(np.isfinite(block.prior_sigma_m))
         self.dem_pts = np.flatnonzero(dem_active) if dem is not None else np.zeros(0, int)
         # parameter prior sigmas
@@ -288,7 +325,7 @@ class _Problem:
         self.param_sigma = np.array(ps, float)
 
     def split(self, x):
-        return x[: self.n_params], x[self.n_params:].reshape(-1, 3)
+        return x[: self.n_params], x[self.n_params: self.off_col].reshape(-1, 3)
 
     def _dem(self, lon, lat):
         return np.asarray(self.dem(lon, lat), float)
@@ -346,7 +383,8 @@ class _Problem:
         if dp.size:
             lon, lat, h = _lonlat(b.ground0[dp], d[dp])
             z = self._dem(lon, lat)
-            res.append((h - z) / p.dem_sigma_m)
+            ds = self.dem_sigma[dp]
+            res.append((h - z - x[self.off_col]) / ds)
             if with_jac:
                 st = 5.0
                 coslat = np.cos(np.radians(b.ground0[dp, 1]))
@@ -358,8 +396,17 @@ class _Problem:
                 for k, v in enumerate((-ze, -zn, np.ones(dp.size))):
                     rows.append(ar)
                     cols.append(self.n_params + 3 * dp + k)
-                    vals.append(v / p.dem_sigma_m)
+                    vals.append(v / ds)
+                rows.append(ar)
+                cols.append(np.full(dp.size, self.off_col))
+                vals.append(-1.0 / ds)
             n_row += dp.size
+        res.append(np.array([x[self.off_col] / p.dem_offset_sigma_m]))
+        if with_jac:
+            rows.append(np.array([n_row]))
+            cols.append(np.array([self.off_col]))
+            vals.append(np.array([1.0 / p.dem_offset_sigma_m]))
+        n_row += 1
         # weak priors on the bias terms
         res.append(xp / self.param_sigma)
         if with_jac:
@@ -416,12 +463,17 @@ def adjust_block(
     if dem is not None and dem_active.any():
         z = np.asarray(dem(block.ground0[dem_active, 0], block.ground0[dem_active, 1]), float)
         dem_active[np.flatnonzero(dem_active)[~np.isfinite(z)]] = False
+    dem_candidates = dem_active.copy()
+    slope = (np.zeros(block.n_points) if block.dem_slope_sigma_m is None
+             else np.nan_to_num(np.asarray(block.dem_slope_sigma_m, float)))
+    s0 = float(params.dem_sigma_m)
     sizes = sum(m.size for m in models)
-    x = np.zeros(sizes + 3 * block.n_points)
+    x = np.zeros(sizes + 3 * block.n_points + 1)
     nfev = 0
     rounds = 0
     for rounds in range(1, params.max_rounds + 1):
-        prob = _Problem(rpcs, models, block, dem, params, active, dem_active)
+        dem_sigma = np.hypot(params.dem_sigma_m, slope)
+        prob = _Problem(rpcs, models, block, dem, params, active, dem_active, dem_sigma)
         sol = least_squares(
             lambda v: prob.evaluate(v, False), x, jac=lambda v: prob.evaluate(v, True)[1],
             method="trf", tr_solver="lsmr", loss=params.loss, f_scale=params.f_scale, x_scale="jac",
@@ -439,21 +491,37 @@ def adjust_block(
             new[:] = False
             new[order[first]] = True
         dem_new = np.zeros_like(dem_active)
+        dem_back = np.zeros_like(dem_active)
+        s0_changed = False
         if dem is not None and dem_active.any():
-            dres = _dem_residuals(block, x, prob, dem)
-            dem_new = dem_active & ~(np.abs(dres) <= params.dem_reject_k * params.dem_sigma_m)
+            dres = _dem_residuals(block, x, prob, dem) - x[prob.off_col]
+            if params.dem_robust_sigma:
+                r = dres[dem_active]
+                r = r[np.isfinite(r)]  # a point that moved off the DEM
+                r = r if r.size else np.zeros(1)
+                s_new = max(params.dem_min_sigma_m, 1.4826 * float(np.median(np.abs(r - np.median(r)))))
+                s0_changed = abs(s_new - s0) > 0.2 * s0
+                s0 = s_new
+                centre = float(np.median(r))
+            else:
+                centre = 0.0
+            within = np.abs(dres - centre) <= params.dem_reject_k * s0
+            dem_new = dem_active & ~within
+            dem_back = dem_candidates & ~dem_active & within
         back = ~active & (norm <= thr)  # rejected earlier, fine now that the blunders are out
-        if not new.any() and not dem_new.any() and not back.any():
+        if not new.any() and not dem_new.any() and not back.any() and not dem_back.any() and not s0_changed:
             break
         active = (active & ~new) | back
-        dem_active &= ~dem_new
+        dem_active = (dem_active & ~dem_new) | dem_back
     xs = [x[prob.param_off[i]: prob.param_off[i + 1]].copy() for i in range(len(models))]
     _, d = prob.split(x)
     lon, lat, h = _lonlat(block.ground0, d)
     dres = _dem_residuals(block, x, prob, dem) if dem is not None else np.full(block.n_points, np.nan)
     return AdjustResult(
         x=xs, ground=np.column_stack([lon, lat, h]), residual_px=res, rejected=~active, dem_used=dem_active,
-        dem_residual_m=dres, rounds=rounds, nfev=nfev, info={"cost": float(sol.cost), "status": int(sol.status)},
+        dem_residual_m=dres, rounds=rounds, nfev=nfev,
+        info={"cost": float(sol.cost), "status": int(sol.status), "dem_sigma_m": s0 if dem is not None else None,
+              "dem_offset_m": float(x[prob.off_col]) if dem is not None else None},
     )
 
 

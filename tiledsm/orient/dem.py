@@ -7,6 +7,13 @@ heights above that geoid (SRTM: EGM96) and ``N`` is added.
 
 Conventions: lon/lat WGS84 degrees; DEM values are node values at GDAL pixel
 centres; nodata and points outside the DEM give NaN.
+
+A DEM cell is an area average (SRTM: about 30 m), a tie point a point: on
+slopes, and next to buildings that raise the average of the cells around
+them, the two differ by about ``cell size x |gradient|``.
+:meth:`ReferenceDEM.slope_sigma` gives that term per point, so the
+adjustment can weight flat ground above relief
+(:attr:`tiledsm.orient.adjust.Block.dem_slope_sigma_m`).
 """
 
 from __future__ import annotations
@@ -117,7 +124,45 @@ class ReferenceDEM:
         grid.setflags(write=False)
         return cls(grid, transform, crs, f"{path}" + (f" + geoid {Path(geoid).name}" if geoid else ""))
 
-    def __call__(self, lon, lat) -> np.ndarray:
+    @classmethod
+    def for_cameras(cls, path: str | Path, rpcs, shapes, geoid: str | Path | None = None) -> "ReferenceDEM":
+        """:meth:`open` over the ground box of images: every image's footprint
+        (``rpcs[i]`` over ``shapes[i]`` = (rows, cols)) across its RPC's
+        height range."""
+        lon_r, lat_r = [], []
+        for rpc, (nr, nc) in zip(rpcs, shapes):
+            hs = abs(rpc.height_scale)
+            (lo, hi), (la, lb) = rpc.ground_box((0.0, float(nr), 0.0, float(nc)),
+                                                (rpc.height_off - hs, rpc.height_off + hs))
+            lon_r += [lo, hi]
+            lat_r += [la, lb]
+        return cls.open(path, (min(lon_r), max(lon_r)), (min(lat_r), max(lat_r)), geoid=geoid)
+
+    def _index(self, lon, lat) -> tuple[np.ndarray, np.ndarray]:
         x, y = _to_crs(self.crs).transform(np.asarray(lon, float), np.asarray(lat, float))
         col, row = ~self.transform * (np.asarray(x), np.asarray(y))
-        return bilinear(self.grid, np.asarray(row) - 0.5, np.asarray(col) - 0.5)
+        return np.asarray(row) - 0.5, np.asarray(col) - 0.5
+
+    def __call__(self, lon, lat) -> np.ndarray:
+        return bilinear(self.grid, *self._index(lon, lat))
+
+    def cell_m(self) -> tuple[float, float]:
+        """Cell size ``(along y, along x)`` in metres (a geographic DEM's
+        degrees converted at the window's central latitude)."""
+        from pyproj import CRS
+
+        dy, dx = abs(self.transform.e), abs(self.transform.a)
+        if CRS.from_user_input(self.crs).is_geographic:
+            lat = self.transform.f + self.transform.e * 0.5 * self.grid.shape[0]
+            m = 6378137.0 * np.pi / 180.0
+            return dy * m, dx * m * np.cos(np.radians(lat))
+        return dy, dx
+
+    def slope_sigma(self, lon, lat) -> np.ndarray:
+        """Representativeness error of the DEM at points, metres:
+        ``cell size x |gradient|`` (gradient by central differences over the
+        grid, sampled bilinearly); NaN where the DEM is."""
+        cy, cx = self.cell_m()
+        gy, gx = np.gradient(self.grid, cy, cx)
+        r, c = self._index(lon, lat)
+        return np.hypot(bilinear(gy, r, c) * cy, bilinear(gx, r, c) * cx)

@@ -18,7 +18,7 @@ from __future__ import annotations
 import json
 import time
 import warnings
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
 
@@ -124,6 +124,7 @@ def orient_images(
     params: OrientParams = OrientParams(),
     rpcs: Sequence[RPC] | None = None,
     scheduler: str | None = None,
+    exclude=None,
 ) -> Orientation:
     """Orient a block of images (module docstring).
 
@@ -144,6 +145,11 @@ def orient_images(
         Cameras to use instead of those found with the images.
     scheduler : str, optional
         Dask scheduler of the tie-point tiles.
+    exclude : callable, optional
+        ``exclude(lon, lat) -> bool array``: True for ground that is not
+        stable (e.g. a rupture zone between two epochs); tie points there
+        are left out of the block (counted in the report,
+        ``n_tracks_excluded``).
 
     Raises
     ------
@@ -195,10 +201,17 @@ def orient_images(
     img_l, pt_l, row_l, col_l, sig_l = [], [], [], [], []
     ground0, prior, use_dem, ids = [], [], [], []
     n_pt = 0
+    n_excluded = 0
     if tracks is not None and tracks.n:
         ti, tp, tr, tc = tracks.observations()
         h0 = 0.5 * (guide.h_range[0] + guide.h_range[1])
         gt, _ = intersect(rpcs, ti, tp, tr, tc, tracks.n, h0=h0)
+        if exclude is not None:
+            out = np.zeros(tracks.n, bool)
+            fin = np.isfinite(gt).all(axis=1)
+            out[fin] = np.asarray(exclude(gt[fin, 0], gt[fin, 1]), bool)
+            gt[out] = np.nan  # dropped below with the points that did not intersect
+            n_excluded = int(out.sum())
         img_l.append(ti)
         pt_l.append(tp)
         row_l.append(tr)
@@ -235,6 +248,9 @@ def orient_images(
         block = Block(block.img[keep_obs], block.pt[keep_obs], block.row[keep_obs], block.col[keep_obs],
                       block.sigma_px[keep_obs], np.nan_to_num(block.ground0), block.prior_sigma_m,
                       block.use_dem & ~bad, block.point_ids)
+    slope_sigma = getattr(dem, "slope_sigma", None)  # ReferenceDEM: weight flat ground above relief
+    if slope_sigma is not None and block.use_dem.any():
+        block = replace(block, dem_slope_sigma_m=slope_sigma(block.ground0[:, 0], block.ground0[:, 1]))
     result = adjust_block(rpcs, models, block, dem, params.adjust)
     timings["adjust"] = time.perf_counter() - t1
 
@@ -253,6 +269,7 @@ def orient_images(
 
     report = _report(paths, rpcs, after, models, terms, g, chk, tracks, guide, block, result, dem)
     report["timings_s"] = timings
+    report["n_tracks_excluded"] = n_excluded
     return Orientation(paths, tuple(shapes), rpcs, tuple(after), tuple(models), tuple(terms), g, chk, tracks,
                        result, block, report)
 

@@ -16,7 +16,14 @@ run folder ``OUT``:
   known) and, with a known truth, the errors of the recovered ``dh``;
 - ``scene/`` (synthetic input): the scene of :func:`tiledsm.synth.make_scene`
   and ``stable_mask.geojson`` (the exclusion polygons written from the known
-  event).
+  event);
+- ``orient/`` (with an ``orient:`` section, :class:`DeformationOrientSpec`):
+  the bias-corrected images the DSMs are computed from and their
+  ``orient.json`` (:mod:`tiledsm.orient`). By default pre- and post-event
+  images form one block whose tie points are common to both epochs and lie
+  on stable ground (outside ``compare.stable_mask``), so both DSMs share
+  one frame before they are differenced; ``joint: false`` orients each
+  epoch alone (``orient/pre``, ``orient/post``).
 
 Conventions
 -----------
@@ -57,6 +64,7 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from tiledsm.errors import NoOverlapError, TiledsmError
+from tiledsm.orient.spec import OrientSpec
 from tiledsm.recipes import ClusterSpec, GridSpec, MatchSpec, OutputSpec, SynthInput, _Strict, register_recipe
 
 __all__ = ["DeformationRecipe", "run_deformation", "throw_across", "Fault"]
@@ -156,6 +164,24 @@ class CompareSpec(_Strict):
         return value
 
 
+class DeformationOrientSpec(OrientSpec):
+    """``orient:`` of a deformation recipe (:class:`tiledsm.orient.spec.OrientSpec`
+    plus ``joint``). GCP and check-point files name images of both epochs
+    when ``joint`` (of one epoch otherwise: give them with ``joint: true``)."""
+
+    joint: bool = Field(
+        True,
+        description="orient pre- and post-event images together in one block (tie points common to both epochs, "
+        "on stable ground: outside compare.stable_mask) so both DSMs share one frame; false: each epoch alone",
+    )
+
+    @model_validator(mode="after")
+    def _points_need_joint(self):
+        if not self.joint and (self.gcps or self.check_points):
+            raise ValueError("'gcps'/'check_points' name images of both epochs: use them with 'joint: true'")
+        return self
+
+
 class DeformationRecipe(_Strict):
     """``pipeline: deformation`` — pre and post pairs to a vertical
     displacement map, co-registered on stable terrain, with the throw."""
@@ -169,6 +195,7 @@ class DeformationRecipe(_Strict):
     compare: CompareSpec = CompareSpec()
     cluster: ClusterSpec = ClusterSpec()
     output: OutputSpec = OutputSpec()
+    orient: Optional[DeformationOrientSpec] = None
 
     @model_validator(mode="after")
     def _fault_source(self):
@@ -407,6 +434,33 @@ def _fault_from_trace(spec: FaultSpec, crs: str) -> Fault:
     return Fault((x[0], y[0]), (x[1] - x[0], y[1] - y[0]))
 
 
+def _orient_epochs(spec: DeformationOrientSpec, pre_in, post_in, out: Path, stable_mask, overwrite: bool):
+    """Bias-corrected images of both epochs (module notes): ``(pre_in,
+    post_in, report)`` with the corrected copies and no separate RPCs."""
+    from tiledsm.orient.spec import orient_for_recipe, polygon_exclusion
+
+    def rpcs_of(epoch):
+        return list(epoch[1]) if epoch[1] is not None else [None] * len(epoch[0])
+
+    if spec.joint:
+        exclude = polygon_exclusion(stable_mask) if stable_mask else None
+        n = len(pre_in[0])
+        images, _, rep = orient_for_recipe([*pre_in[0], *post_in[0]], rpcs_of(pre_in) + rpcs_of(post_in), spec,
+                                           out / "orient", exclude=exclude, overwrite=overwrite)
+        return (images[:n], None), (images[n:], None), {"joint": True, **_orient_summary(rep)}
+    res, reps = [], {"joint": False}
+    for name, epoch in (("pre", pre_in), ("post", post_in)):
+        images, _, rep = orient_for_recipe(epoch[0], rpcs_of(epoch), spec, out / "orient" / name, overwrite=overwrite)
+        res.append((images, None))
+        reps[name] = _orient_summary(rep)
+    return res[0], res[1], reps
+
+
+def _orient_summary(rep: dict) -> dict:
+    keys = ("n_tracks", "n_tracks_excluded", "tie_relative_rms_px", "gcp_rms_px", "check_rms_px", "rejected_gcps", "dem")
+    return {**{k: rep[k] for k in keys if k in rep}, "terms": {Path(d["image"]).name: d["terms"] for d in rep["images"]}}
+
+
 def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrite: bool = False) -> dict:
     """Pre and post pairs -> DSMs on one grid -> co-registered ``dh`` -> metrics.
 
@@ -451,20 +505,28 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
         post_in = (inp.post.images, inp.post.rpcs)
     params = _dsm_params(recipe)
 
+    # ---- stable terrain (before orientation: its tie points must avoid the moved ground)
+    stable_mask = recipe.compare.stable_mask
+    if scene is not None and stable_mask is None and inp.synth.auto_stable_mask and recipe.compare.coreg != "none":
+        feats, _ = event_exclusion_polygons(scene.event["params"], scene.origin, scene.grid.width * scene.grid.resolution)
+        stable_mask = str(_write_geojson(feats, scene.grid.crs, out / "scene" / "stable_mask.geojson"))
+    orient_report = None
+    if recipe.orient is not None:
+        t0 = time.perf_counter()
+        pre_in, post_in, orient_report = _orient_epochs(recipe.orient, pre_in, post_in, out, stable_mask, overwrite)
+        timings["orient_s"] = time.perf_counter() - t0
+
     # ---- both DSMs lazily, the post one on the pre grid; refuse a post pair off the grid before computing
     ds_pre, rep_pre = dsm_from_pair(*pre_in[0], rpcs=pre_in[1], grid=grid, params=params)
     grid = GroundGrid.like(ds_pre["height"], chunk=params.chunk)
     ds_post, rep_post = dsm_from_pair(*post_in[0], rpcs=post_in[1], grid=grid, params=params)
     _check_post_sees_grid(post_in[0], post_in[1], rep_post["height_range_m"], grid, pre_in[0])
 
-    # ---- stable terrain and fault
-    fault, strip, stable_mask = None, recipe.compare.strip, recipe.compare.stable_mask
+    # ---- fault
+    fault, strip = None, recipe.compare.strip
     if scene is not None:
         ev = scene.event["params"]
         fault = Fault(np.asarray(ev.fault_point) + np.asarray(scene.origin), ev.strike)
-        if stable_mask is None and inp.synth.auto_stable_mask and recipe.compare.coreg != "none":
-            feats, _ = event_exclusion_polygons(ev, scene.origin, scene.grid.width * scene.grid.resolution)
-            stable_mask = str(_write_geojson(feats, scene.grid.crs, out / "scene" / "stable_mask.geojson"))
     elif recipe.fault is not None:
         fault = _fault_from_trace(recipe.fault, grid.crs)
     cparams = CompareParams(
@@ -499,6 +561,8 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
         "dh_statistics": cm["statistics"]["all"],
         "products": {k: str(Path(v).relative_to(out)) for k, v in res.products.items()},
     }
+    if orient_report is not None:
+        metrics["orient"] = orient_report
     t0 = time.perf_counter()
     dh_da = open_product(out / "compare" / "dh.zarr")["dh"]
     dh = np.asarray(dh_da.values, np.float64)
