@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import BIASES, H_RANGE, SIZE, relative_error
+from orient_cases import BIASES, H_RANGE, SIZE, relative_error
 
 from tiledsm.orient.adjust import AdjustParams, adjust_block, intersect
 from tiledsm.orient.bias import get_model

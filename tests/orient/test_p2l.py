@@ -4,7 +4,7 @@ injected blunders (biased RPCs, as in real use)."""
 from __future__ import annotations
 
 import numpy as np
-from conftest import H_RANGE, SIZE
+from orient_cases import H_RANGE, SIZE
 
 from tiledsm.orient.p2l import p2l_distances, p2l_filter, ransac_filter
 from tiledsm.orient.simulate import ground_points, project_all

@@ -98,7 +98,7 @@ def test_orient_for_recipe(scene2, tmp_path):
     correspondences with a height bias <= 0.15 m (injected: ~8 m; the
     averaged DEM pulls against the GCPs a little: 0.04 px without it);
     a second call reuses the products."""
-    from conftest import write_gcp_files
+    from orient_cases import write_gcp_files
 
     info, true, biased, h, root = scene2
     names = [p.name for p in biased]
@@ -132,7 +132,7 @@ def test_deformation_joint_orientation(tmp_path):
     (pre position ``q - (dx, dy)`` at ``f_post(q) - dz``, post position
     ``q`` at ``f_post(q)``, the event's convention) intersect in the four
     corrected views with a residual << the injected 2-3 px."""
-    from conftest import BIASES
+    from orient_cases import BIASES
 
     from tiledsm.orient.simulate import biased_copies
     from tiledsm.synth import make_scene
@@ -195,7 +195,7 @@ def test_dsm_recipe_orients_first(scene2, tmp_path):
     import sys
 
     import yaml
-    from conftest import write_gcp_files
+    from orient_cases import write_gcp_files
 
     info, true, biased, h, root = scene2
     write_gcp_files(true, [p.name for p in biased], tmp_path)

@@ -10,7 +10,7 @@ import warnings
 import numpy as np
 import pytest
 import rasterio
-from conftest import write_gcp_files
+from orient_cases import write_gcp_files
 
 from tiledsm.cli import main
 from tiledsm.geometry import RPC, find_camera
