@@ -569,7 +569,8 @@ def test_worker_memory_formula():
 
     m = estimate_worker_memory((640, 640), 100, views=2, window_px=10**6, decimation=2, itemsize=2)
     held = 4 * 2 * 10**6 // 4
-    assert m.cost_volumes == 3 * 4 * 640 * 640 * 100
+    assert m.cost_volumes == 2 * 4 * 640 * 640 * 100  # the fast kernel: volume and aggregated cost
+    assert estimate_worker_memory((640, 640), 100, volumes=3).cost_volumes == 3 * 4 * 640 * 640 * 100
     assert m.matching == m.cost_volumes + 4 * 2 * 640 * 640 + held
     assert m.reading == 10**6 * 12 + held
     assert m.total == WORKER_BASELINE_MIB * 2**20 + m.matching

@@ -108,6 +108,20 @@ def _restarts(g, sgn, period):
     return (g + 1) % period == 0
 
 
+@nb.njit(nogil=True, cache=True, inline="always")
+def _path_buffers(nx, nd):
+    """Padding, padded width and the path buffers (costs, minima) of the
+    previous and current row for the three row-crossing directions (dx =
+    -1, 0, +1 relative to the sweep), +inf outside the candidates."""
+    pad = nd + 1
+    width = nd + 2 * pad
+    prev = np.full((3, nx, width), _INF, np.float32)
+    prev_min = np.empty((3, nx), np.float32)
+    cur = np.full((3, nx, width), _INF, np.float32)
+    cur_min = np.empty((3, nx), np.float32)
+    return pad, width, prev, prev_min, cur, cur_min
+
+
 @nb.njit(nogil=True, cache=True)
 def _pass(cost, base, P1, P2, guide, use_guide, gamma, S, forward, gi0, gj0, period):
     """Four paths in one sweep (rows top-down if ``forward`` else bottom-up).
@@ -116,15 +130,8 @@ def _pass(cost, base, P1, P2, guide, use_guide, gamma, S, forward, gi0, gj0, per
     ``period > 0`` every path restarts on the grid's lines every
     ``period`` cells (see :func:`aggregate`)."""
     ny, nx, nd = cost.shape
-    pad = nd + 1
-    width = nd + 2 * pad
     sgn = 1 if forward else -1
-    # padded path buffers of the previous/current row for the three
-    # row-crossing directions (dx = -1, 0, +1 relative to the sweep)
-    prev = np.full((3, nx, width), _INF, np.float32)
-    prev_min = np.empty((3, nx), np.float32)
-    cur = np.full((3, nx, width), _INF, np.float32)
-    cur_min = np.empty((3, nx), np.float32)
+    pad, width, prev, prev_min, cur, cur_min = _path_buffers(nx, nd)
     row = np.full(width, _INF, np.float32)
     row_new = np.full(width, _INF, np.float32)
     for t in range(ny):
@@ -173,6 +180,21 @@ def _fill_invalid(cost, value):
     return out
 
 
+def _checked(cost, P1: float, P2: float, base) -> tuple[np.ndarray, np.ndarray]:
+    """The volume as contiguous float32 and ``base`` as int64 (zeros when
+    ``None``), after checking shapes and penalties."""
+    cost = np.asarray(cost)
+    if cost.ndim != 3 or min(cost.shape) < 1:
+        raise ValueError(f"aggregate: cost volume must be (ny, nx, nd) and non-empty, got {cost.shape}")
+    if P2 < P1 or P1 < 0:
+        raise ValueError(f"aggregate: need 0 <= P1 <= P2, got P1={P1}, P2={P2}")
+    ny, nx, _ = cost.shape
+    b = np.zeros((ny, nx), np.int64) if base is None else np.ascontiguousarray(base, np.int64)
+    if b.shape != (ny, nx):
+        raise ValueError(f"aggregate: base has shape {b.shape}, expected {(ny, nx)}")
+    return np.ascontiguousarray(cost, np.float32), b
+
+
 def aggregate(
     cost: np.ndarray,
     P1: float,
@@ -183,6 +205,7 @@ def aggregate(
     invalid_cost: float = 1.0,
     origin: tuple[int, int] = (0, 0),
     restart_period: int = 0,
+    fast: bool = False,
 ) -> np.ndarray:
     """Semi-global aggregation of a cost volume over 8 paths.
 
@@ -215,32 +238,165 @@ def aggregate(
         semi-global matching lets a path carry information across the
         whole grid, most of all through textureless or invalid areas,
         where costs are flat: no finite halo makes tiles exact.)
+    fast : bool
+        Without a ``guide``: the compiled path of the fast matching kernel
+        (:func:`_pass_fast`: invalid costs filled row by row, no filled
+        copy of the volume, vectorised path updates), the same result bit
+        for bit.
 
     Returns
     -------
     numpy.ndarray
         ``(ny, nx, nd)`` float32 aggregated cost ``S`` (sum of 8 paths).
     """
-    cost = np.asarray(cost)
-    if cost.ndim != 3 or min(cost.shape) < 1:
-        raise ValueError(f"aggregate: cost volume must be (ny, nx, nd) and non-empty, got {cost.shape}")
-    if P2 < P1 or P1 < 0:
-        raise ValueError(f"aggregate: need 0 <= P1 <= P2, got P1={P1}, P2={P2}")
+    cost, b = _checked(cost, P1, P2, base)
+    gi0, gj0, period = int(origin[0]), int(origin[1]), int(restart_period)
+    if fast and guide is None:
+        S = np.zeros(cost.shape, np.float32)
+        p1, p2, inv = np.float32(P1), np.float32(P2), np.float32(invalid_cost)
+        _pass_fast(cost, b, p1, p2, S, True, gi0, gj0, period, inv)
+        _pass_fast(cost, b, p1, p2, S, False, gi0, gj0, period, inv)
+        return S
     ny, nx, _ = cost.shape
-    c = _fill_invalid(np.ascontiguousarray(cost, np.float32), np.float32(invalid_cost))
-    b = np.zeros((ny, nx), np.int64) if base is None else np.ascontiguousarray(base, np.int64)
-    if b.shape != (ny, nx):
-        raise ValueError(f"aggregate: base has shape {b.shape}, expected {(ny, nx)}")
+    c = _fill_invalid(cost, np.float32(invalid_cost))
     use_guide = guide is not None
     g = np.ascontiguousarray(guide, np.float32) if use_guide else np.zeros((1, 1), np.float32)
     if use_guide and g.shape != (ny, nx):
         raise ValueError(f"aggregate: guide has shape {g.shape}, expected {(ny, nx)}")
     S = np.zeros(c.shape, np.float32)
     p1, p2, gamma = np.float32(P1), np.float32(P2), np.float32(p2_gamma)
-    gi0, gj0, period = int(origin[0]), int(origin[1]), int(restart_period)
     _pass(c, b, p1, p2, g, use_guide, gamma, S, True, gi0, gj0, period)
     _pass(c, b, p1, p2, g, use_guide, gamma, S, False, gi0, gj0, period)
     return S
+
+
+# ------------------------------------------------------------ compiled fast path
+# The helpers are inlined into _pass_fast (numba IR), which lets numba drop
+# the reference counting of the per-cell array views.
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def _step_fast(c, prev, o0, prev_min, P1, P2, out, pad, ob):
+    """:func:`_step` on one cell's (NaN-filled) costs ``c``; ``o0 = pad + shift``.
+
+    The arithmetic types are :func:`_step`'s as compiled there (where the
+    ``P2`` of :func:`_penalty2` is a float64): the jump limit, the path
+    cost before it is stored (float32) and the returned minimum are
+    float64, the neighbour minimum float32. The path costs are computed
+    in one vectorised loop (``ob``: float64 scratch), their minimum in a
+    second one with four running minima (exact in any order)."""
+    nd = c.shape[0]
+    lim = np.float64(prev_min) + np.float64(P2)
+    pv = prev[o0 - 1 : o0 + nd + 1]
+    ot = out[pad : pad + nd]
+    for k in range(nd):
+        m = np.float64(min(pv[k + 1], min(pv[k], pv[k + 2]) + P1))
+        m = min(m, lim)
+        o = np.float64(c[k]) + m - prev_min
+        ob[k] = o
+        ot[k] = o
+    return _min4(ob, nd)
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def _min4(ob, nd):
+    b0 = ob[0]
+    b1 = b0
+    b2 = b0
+    b3 = b0
+    k = 0
+    while k + 4 <= nd:
+        b0 = min(b0, ob[k])
+        b1 = min(b1, ob[k + 1])
+        b2 = min(b2, ob[k + 2])
+        b3 = min(b3, ob[k + 3])
+        k += 4
+    while k < nd:
+        b0 = min(b0, ob[k])
+        k += 1
+    return min(min(b0, b1), min(b2, b3))
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def _init_fast(c, out, pad, ob):
+    nd = c.shape[0]
+    ot = out[pad : pad + nd]
+    for k in range(nd):
+        ot[k] = c[k]
+        ob[k] = c[k]
+    return np.float32(_min4(ob, nd))
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def _update(c, prev, shift, prev_min, P1, P2, out, pad, ob):
+    # a jump farther than the candidates: only the P2 transition exists
+    nd = c.shape[0]
+    if shift > nd or shift < -nd:
+        ot = out[pad : pad + nd]
+        for k in range(nd):
+            o = np.float64(c[k]) + np.float64(P2)
+            ob[k] = o
+            ot[k] = o
+        return _min4(ob, nd)
+    return _step_fast(c, prev, pad + shift, np.float64(prev_min), P1, P2, out, pad, ob)
+
+
+@nb.njit(nogil=True, cache=True)
+def _fill_row(cost, i, value, out):
+    nx, nd = out.shape
+    for j in range(nx):
+        src = cost[i, j]
+        dst = out[j]
+        for k in range(nd):
+            v = src[k]
+            dst[k] = v if np.isfinite(v) else value
+    return out
+
+
+@nb.njit(nogil=True, cache=True)
+def _pass_fast(cost, base, P1, P2, S, forward, gi0, gj0, period, invalid):
+    """:func:`_pass` without a guide, bit for bit: invalid costs filled row
+    by row (no filled copy of the volume), the four paths of a row summed
+    into ``S`` in one sweep, in the reference's order."""
+    ny, nx, nd = cost.shape
+    sgn = 1 if forward else -1
+    pad, width, prev, prev_min, cur, cur_min = _path_buffers(nx, nd)
+    inrow = np.full((nx, width), _INF, np.float32)
+    crow = np.empty((nx, nd), np.float32)
+    ob = np.empty(nd)
+    for t in range(ny):
+        i = t if forward else ny - 1 - t
+        pi = i - sgn
+        _fill_row(cost, i, invalid, crow)
+        rmin = 0.0  # float64, as in _pass
+        for u in range(nx):
+            j = u if forward else nx - 1 - u
+            if u == 0 or _restarts(gj0 + j, sgn, period):
+                rmin = np.float64(_init_fast(crow[j], inrow[j], pad, ob))
+            else:
+                pj = j - sgn
+                rmin = _update(crow[j], inrow[pj], base[i, j] - base[i, pj], rmin, P1, P2, inrow[j], pad, ob)
+        for d in range(3):
+            dx = d - 1
+            for j in range(nx):
+                pj = j - dx
+                restart = _restarts(gi0 + i, sgn, period) or (dx != 0 and _restarts(gj0 + j, dx, period))
+                if t == 0 or pj < 0 or pj >= nx or restart:
+                    cur_min[d, j] = _init_fast(crow[j], cur[d, j], pad, ob)
+                else:
+                    cur_min[d, j] = _update(
+                        crow[j], prev[d, pj], base[i, j] - base[pi, pj], prev_min[d, pj], P1, P2, cur[d, j], pad, ob
+                    )
+        for j in range(nx):
+            s = S[i, j]
+            a = inrow[j, pad : pad + nd]
+            b0 = cur[0, j, pad : pad + nd]
+            b1 = cur[1, j, pad : pad + nd]
+            b2 = cur[2, j, pad : pad + nd]
+            for k in range(nd):
+                s[k] = s[k] + a[k] + b0[k] + b1[k] + b2[k]
+        prev, cur = cur, prev
+        prev_min, cur_min = cur_min, prev_min
 
 
 @nb.njit(nogil=True, cache=True)

@@ -30,9 +30,10 @@ Conventions
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import cv2
 import numba as nb
@@ -41,7 +42,9 @@ import numpy as np
 from tiledsm.errors import MatchingError
 from tiledsm.geometry import RPC
 from tiledsm.match.cost import mean_zncc_cost
+from tiledsm.match.sampling import sample_view
 from tiledsm.match.sgm import aggregate, remove_speckles, winner_take_all
+from tiledsm.match.sweep import MASKED_COST, cost_volume
 
 __all__ = [
     "SGVLLParams",
@@ -50,9 +53,6 @@ __all__ = [
     "match_block",
     "reference_surface",
 ]
-
-#: cost of candidates that lie outside a cell's own height range (never chosen)
-_MASKED_COST = np.float32(4.0)
 
 _INTERP = ("linear", "cubic")
 
@@ -120,6 +120,11 @@ class SGVLLParams:
         With three or more views, weight each pair's ZNCC by its squared
         parallax per metre of height (inverse variance; see
         :func:`tiledsm.match.cost.mean_zncc_cost`); ``False``: plain mean.
+    kernel : str
+        Implementation of the sweep and aggregation (:data:`KERNELS`):
+        ``"fast"`` (:mod:`tiledsm.match.sweep`: compiled candidate loop,
+        only the candidates each cell needs) or ``"reference"`` (the plain
+        per-height sweep it is tested against).
     path_period : int
         Semi-global paths restart every ``path_period`` cells on lines of
         the whole grid (:func:`tiledsm.match.sgm.aggregate`): each cell's
@@ -150,8 +155,11 @@ class SGVLLParams:
     ref_sigma: float = 3.0
     weight_pairs: bool = True
     path_period: int = 64
+    kernel: str = "fast"
 
     def __post_init__(self) -> None:
+        if self.kernel not in KERNELS:
+            raise ValueError(f"SGVLLParams.kernel must be one of {sorted(KERNELS)}, got {self.kernel!r}")
         if self.window < 1 or self.window % 2 == 0:
             raise ValueError(f"SGVLLParams.window must be odd and >= 1, got {self.window}")
         if not 0 <= self.P1 <= self.P2:
@@ -210,127 +218,7 @@ def _parallax(rpcs: Sequence[RPC], lon: float, lat: float, h: float) -> np.ndarr
     return np.hypot(d[:, None, 0] - d[None, :, 0], d[:, None, 1] - d[None, :, 1])
 
 
-# ------------------------------------------------------------ projection maps
-#: Keys' cubic convolution parameter (OpenCV's INTER_CUBIC uses the same)
-_CUBIC_A = -0.75
-
-
-@nb.njit(nogil=True, cache=True, inline="always")
-def _keys(d, a):
-    """Keys' cubic convolution kernel at distance ``d >= 0``."""
-    if d <= 1.0:
-        return ((a + 2.0) * d - (a + 3.0)) * d * d + 1.0
-    if d < 2.0:
-        return ((a * d - 5.0 * a) * d + 8.0 * a) * d - 4.0 * a
-    return 0.0
-
-
-@nb.njit(nogil=True, cache=True, inline="always")
-def _lattice_cell(g, stride, n0, n):
-    """Lattice interval ``k`` (clamped to ``[.., n - 2]``) and fraction of
-    global cell ``g`` on nodes every ``stride`` cells starting at node ``n0``."""
-    u = g / stride
-    k = int(np.floor(u))
-    f = u - k
-    k -= n0
-    if k > n - 2:
-        k = n - 2
-        f = u - (k + n0)
-    return k, f
-
-
-@nb.njit(nogil=True, cache=True)
-def _sample_view(img, lat_r, lat_c, stride, k0, dh, href, offset, gi0, gj0, n0i, n0j, win_r, win_c, cubic, r0, r1, c0, c1, out):
-    """Sample one view at the projections of block cells ``[r0:r1, c0:c1]``
-    at heights ``href + offset``; writes ``out[:r1-r0, :c1-c0]``.
-
-    Image coordinates come from trilinear interpolation of the sparse
-    projection lattice ``(nh, gy, gx)`` of full-image pixel coordinates in
-    the array-index convention (``row - 0.5``, ``col - 0.5``) at ground
-    nodes on *global* cell indices ``(n0i + a) * stride``,
-    ``(n0j + b) * stride`` and heights ``(k0 + t) * dh``; block cell
-    ``[i, j]`` is global cell ``[gi0 + i, gj0 + j]``. Everything is indexed
-    globally and the window origin ``(win_r, win_c)`` is subtracted last
-    (exactly), so a cell's sample is bit-identical in every block that
-    contains it. Interpolation is bicubic (Keys, a = -0.75) or bilinear; a
-    sample whose support leaves the window, or touches NaN, is NaN.
-    """
-    nh, gy, gx = lat_r.shape
-    h, w = img.shape
-    # the lattice column of every block column, once (not once per row)
-    jcol = np.empty(c1 - c0, np.int64)
-    fcol = np.empty(c1 - c0, np.float64)
-    for j in range(c0, c1):
-        jcol[j - c0], fcol[j - c0] = _lattice_cell(gj0 + j, stride, n0j, gx)
-    for i in range(r0, r1):
-        i0, fy = _lattice_cell(gi0 + i, stride, n0i, gy)
-        for j in range(c0, c1):
-            j0 = jcol[j - c0]
-            fx = fcol[j - c0]
-            tt = (href[i, j] + offset) / dh
-            kt = int(np.floor(tt))
-            ft = tt - kt
-            t0 = kt - k0
-            if t0 < 0:
-                t0 = 0
-                ft = tt - k0
-            elif t0 > nh - 2:
-                t0 = nh - 2
-                ft = tt - (k0 + t0)
-            y = _trilinear(lat_r, t0, i0, j0, ft, fy, fx) - win_r
-            x = _trilinear(lat_c, t0, i0, j0, ft, fy, fx) - win_c
-            out[i - r0, j - c0] = _interpolate(img, y, x, cubic, h, w)
-
-
-@nb.njit(nogil=True, cache=True, inline="always")
-def _trilinear(lat, t0, i0, j0, ft, fy, fx):
-    """Trilinear interpolation of ``lat[t, i, j]`` at ``(t0 + ft, i0 + fy,
-    j0 + fx)``: bilinear on the two height planes, then linear in height."""
-    w00 = (1 - fy) * (1 - fx)
-    w01 = (1 - fy) * fx
-    w10 = fy * (1 - fx)
-    w11 = fy * fx
-    a = w00 * lat[t0, i0, j0] + w01 * lat[t0, i0, j0 + 1] + w10 * lat[t0, i0 + 1, j0] + w11 * lat[t0, i0 + 1, j0 + 1]
-    b = (
-        w00 * lat[t0 + 1, i0, j0] + w01 * lat[t0 + 1, i0, j0 + 1]
-        + w10 * lat[t0 + 1, i0 + 1, j0] + w11 * lat[t0 + 1, i0 + 1, j0 + 1]
-    )
-    return a + ft * (b - a)
-
-
-@nb.njit(nogil=True, cache=True, inline="always")
-def _interpolate(img, y, x, cubic, h, w):
-    if not (np.isfinite(y) and np.isfinite(x)):
-        return np.nan
-    iy = int(np.floor(y))
-    ix = int(np.floor(x))
-    fy = y - iy
-    fx = x - ix
-    if cubic:
-        if iy < 1 or ix < 1 or iy + 2 >= h or ix + 2 >= w:
-            return np.nan
-        # the 4 + 4 kernel weights once (the same values, in the same sums)
-        wx0 = _keys(fx + 1.0, _CUBIC_A)
-        wx1 = _keys(fx, _CUBIC_A)
-        wx2 = _keys(1.0 - fx, _CUBIC_A)
-        wx3 = _keys(2.0 - fx, _CUBIC_A)
-        acc = 0.0
-        for p in range(4):
-            wy = _keys(abs(fy - (p - 1)), _CUBIC_A)
-            r = iy - 1 + p
-            row = wx0 * img[r, ix - 1]
-            row += wx1 * img[r, ix]
-            row += wx2 * img[r, ix + 1]
-            row += wx3 * img[r, ix + 2]
-            acc += wy * row
-        return acc
-    if iy < 0 or ix < 0 or iy + 1 >= h or ix + 1 >= w:
-        return np.nan
-    top = img[iy, ix] + fx * (img[iy, ix + 1] - img[iy, ix])
-    bot = img[iy + 1, ix] + fx * (img[iy + 1, ix + 1] - img[iy + 1, ix])
-    return top + fy * (bot - top)
-
-
+# ------------------------------------------------------------ cost volumes
 @nb.njit(nogil=True, cache=True)
 def _scatter(cost, label, base, nvalid, r0, c0, vol):
     """``vol[i, j, label - base[i, j]] = cost[i - r0, j - c0]`` where that
@@ -343,6 +231,85 @@ def _scatter(cost, label, base, nvalid, r0, c0, vol):
             k = label - base[i, j]
             if 0 <= k < nvalid[i, j]:
                 vol[i, j, k] = cost[a, b]
+
+
+def cost_volume_reference(
+    imgs, lat_r, lat_c, stride, k0, dh, href, step, origin, nodes0, win_r, win_c, cubic, base, nvalid, half,
+    pair_w=None, details: dict | None = None,
+) -> np.ndarray:
+    """The SGVLL cost volume of a block, one candidate height at a time
+    (the plain reference of :func:`tiledsm.match.sweep.cost_volume`, same
+    arguments and result): for every label some cell needs, every view is
+    resampled over the bounding box of those cells (plus the window) on
+    the surface ``href + label * step``
+    (:func:`~tiledsm.match.sampling.sample_view`), scored by
+    :func:`~tiledsm.match.cost.mean_zncc_cost` and scattered into the
+    cells' candidates."""
+    nv = len(imgs)
+    ny, nx = href.shape
+    nd = max(1, int(nvalid.max()))
+    ok = nvalid > 0
+    gi0, gj0 = (int(o) for o in origin)
+    n0i, n0j = (int(n) for n in nodes0)
+    vol = np.full((ny, nx, nd), MASKED_COST, np.float32)
+    buf = np.empty((nv, ny, nx), np.float32)
+    top_lab = base + nvalid - 1
+    n_samples = 0
+    for label in range(int(base[ok].min()), int(top_lab[ok].max()) + 1):
+        need = ok & (base <= label) & (top_lab >= label)
+        rows = np.flatnonzero(need.any(axis=1))
+        if rows.size == 0:
+            continue
+        cols = np.flatnonzero(need.any(axis=0))
+        r0, r1 = max(0, rows[0] - half), min(ny, rows[-1] + half + 1)
+        c0, c1 = max(0, cols[0] - half), min(nx, cols[-1] + half + 1)
+        samples = []
+        for v in range(nv):
+            sample_view(
+                imgs[v], lat_r[v], lat_c[v], stride, k0, dh, href, label * step, gi0, gj0, n0i, n0j,
+                win_r[v], win_c[v], cubic, r0, r1, c0, c1, buf[v],
+            )
+            samples.append(buf[v, : r1 - r0, : c1 - c0])
+        cost = mean_zncc_cost(samples, half, weights=pair_w)
+        _scatter(cost, label, base, nvalid, r0, c0, vol)
+        n_samples += (r1 - r0) * (c1 - c0)
+    if details is not None:
+        details["n_samples"] = n_samples
+    return vol
+
+
+@dataclass(frozen=True)
+class MatchKernel:
+    """One implementation of the SGVLL kernel's heavy steps.
+
+    Attributes
+    ----------
+    cost_volume : callable
+        ``(imgs, lat_r, lat_c, stride, k0, dh, href, step, origin, nodes0,
+        win_r, win_c, cubic, base, nvalid, half, pair_w, details=None) ->
+        vol`` (see :func:`tiledsm.match.sweep.cost_volume`).
+    aggregate : callable
+        Semi-global aggregation, the signature of
+        :func:`tiledsm.match.sgm.aggregate`.
+    """
+
+    cost_volume: Callable
+    aggregate: Callable
+
+
+#: matching kernels by name (:attr:`SGVLLParams.kernel`); see :func:`register_kernel`
+KERNELS: dict[str, MatchKernel] = {}
+
+
+def register_kernel(name: str, kernel: MatchKernel) -> None:
+    """Add a kernel to :data:`KERNELS` (a name is taken once)."""
+    if name in KERNELS:
+        raise ValueError(f"matching kernel {name!r} is already registered")
+    KERNELS[name] = kernel
+
+
+register_kernel("reference", MatchKernel(cost_volume_reference, aggregate))
+register_kernel("fast", MatchKernel(cost_volume, functools.partial(aggregate, fast=True)))
 
 
 def pair_weights(rpcs: Sequence[RPC], lon: float, lat: float, h: float) -> np.ndarray:
@@ -419,8 +386,11 @@ def match_block(
     ``h_ref + label * step``, so a ZNCC window always lies on a smooth
     surface (no staircase between cells with different ranges), and the
     semi-global smoothness penalises label changes, i.e. departures from
-    surfaces parallel to ``h_ref``. Only labels some cell needs are swept,
-    each over the bounding box of those cells.
+    surfaces parallel to ``h_ref``. A cell is sampled only at the labels
+    of the cells whose window holds it (``kernel="fast"``,
+    :mod:`tiledsm.match.sweep`; the ``"reference"`` kernel sweeps each
+    label over the bounding box of the cells that need it, with the same
+    result).
 
     Parameters
     ----------
@@ -463,9 +433,14 @@ def match_block(
         default: measured at the block centre. A tiled run passes one
         matrix for the whole grid.
     details : dict, optional
-        If given, filled with ``step`` (m), ``n_candidates`` (per cell),
-        ``n_labels`` (swept), ``zncc``, ``ratio`` (arrays), ``h_ref`` and
-        timings (s) ``t_cost``, ``t_sgm``.
+        If given, filled with ``step`` (m), ``n_candidates`` (the most of
+        a cell: the cost volume's depth), ``mean_candidates`` (over the
+        searched cells), ``n_cells`` (searched), ``candidates`` (``(ny,
+        nx)`` int32 per cell, 0 = not searched), ``n_labels`` (the block's
+        label span), ``n_samples`` (image samples per view), ``kernel``,
+        ``zncc``, ``ratio`` (arrays), ``h_ref`` and timings (s) ``t_cost``
+        (sampling and ZNCC), ``t_sgm`` (aggregation), ``t_wta``
+        (winner-take-all and masks).
 
     Returns
     -------
@@ -564,39 +539,23 @@ def match_block(
     else:
         pair_w = (_parallax(rpcs, float(lon.mean()), float(lat.mean()), (h0 + h1) / 2) ** 2).astype(np.float32)
     t_start = time.perf_counter()
-    half = params.window // 2
-    vol = np.full((ny, nx, nd), _MASKED_COST, np.float32)
-    cubic = params.interpolation == "cubic"
-    buf = np.empty((nv, ny, nx), np.float32)
-    top_lab = base + nvalid - 1
-    n_swept = 0
-    for label in range(lab0, lab1 + 1):
-        need = ok & (base <= label) & (top_lab >= label)
-        rows = np.flatnonzero(need.any(axis=1))
-        if rows.size == 0:
-            continue
-        cols = np.flatnonzero(need.any(axis=0))
-        r0, r1 = max(0, rows[0] - half), min(ny, rows[-1] + half + 1)
-        c0, c1 = max(0, cols[0] - half), min(nx, cols[-1] + half + 1)
-        samples = []
-        for v in range(nv):
-            _sample_view(
-                imgs[v], lat_r[v], lat_c[v], s, k0, dh, href, label * step, gi0, gj0, n0i, n0j,
-                win_r[v], win_c[v], cubic, r0, r1, c0, c1, buf[v],
-            )
-            samples.append(buf[v, : r1 - r0, : c1 - c0])
-        cost = mean_zncc_cost(samples, half, weights=pair_w)
-        _scatter(cost, label, base, nvalid, r0, c0, vol)
-        n_swept += 1
+    kernel = KERNELS[params.kernel]
+    sweep: dict = {}
+    vol = kernel.cost_volume(
+        imgs, lat_r, lat_c, s, k0, dh, href, step, (gi0, gj0), (n0i, n0j), win_r, win_c,
+        params.interpolation == "cubic", base, nvalid, params.window // 2, pair_w, details=sweep,
+    )
     t_cost = time.perf_counter() - t_start
 
     t_start = time.perf_counter()
-    S = aggregate(
+    S = kernel.aggregate(
         vol, params.P1, params.P2, base=base, invalid_cost=params.invalid_cost,
         origin=(gi0, gj0), restart_period=params.path_period,
     )
-    index, _, ratio, cbest = winner_take_all(S, vol, nvalid)
     t_sgm = time.perf_counter() - t_start
+    t_start = time.perf_counter()
+    index, _, ratio, cbest = winner_take_all(S, vol, nvalid)
+    del S, vol
 
     zncc = 1.0 - cbest
     h = (href + (base + index) * step).astype(np.float32)
@@ -608,9 +567,12 @@ def match_block(
     cell = abs(float(gx[1] - gx[0])) if gx.size > 1 else 0.0
     height = remove_speckles(height, params.speckle_max_diff(cell, step), params.speckle_size)
     conf = np.clip(zncc, 0.0, 1.0).astype(np.float32)
+    t_wta = time.perf_counter() - t_start
     if details is not None:
         details.update(
-            step=step, n_candidates=nd, n_labels=n_swept, zncc=zncc, ratio=ratio, h_ref=href,
-            t_cost=t_cost, t_sgm=t_sgm,
+            step=step, n_candidates=nd, mean_candidates=float(nvalid[ok].mean()), n_cells=int(ok.sum()),
+            candidates=nvalid.astype(np.int32),
+            n_labels=lab1 - lab0 + 1, n_samples=sweep.get("n_samples"), zncc=zncc, ratio=ratio, h_ref=href,
+            t_cost=t_cost, t_sgm=t_sgm, t_wta=t_wta, kernel=params.kernel,
         )
     return height, conf

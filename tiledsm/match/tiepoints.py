@@ -67,7 +67,7 @@ def match_tiepoints(
         a = np.asarray(img, np.float32)
         f = max(1, int(np.ceil(max(a.shape) / max_size)))
         if f > 1:
-            from tiledsm.match.sgvll import downsample
+            from tiledsm.match.pyramid import downsample
 
             a = downsample(a, f)
         u8, ok = to_uint8(a)

@@ -101,15 +101,18 @@ def estimate_worker_memory(
     itemsize: int = 2,
     baseline: int = WORKER_BASELINE_MIB * MIB,
     search_band: bool = False,
+    volumes: int = 2,
 ) -> MemoryEstimate:
     """Peak memory of a worker running one matching task.
 
     A task matches ``ny x nx`` cells (chunk plus halo) with ``nd``
-    candidate heights each (:func:`tiledsm.match.sgvll.match_block`). Three
-    buffers of ``ny * nx * nd`` float32 live at once: the cost volume
-    ``vol`` of ``match_block``, its NaN-filled copy made by
-    :func:`tiledsm.match.sgm.aggregate` and the aggregated cost ``S``
-    (``winner_take_all`` reads ``S`` and ``vol`` in place). Besides them the
+    candidate heights each (:func:`tiledsm.match.sgvll.match_block`).
+    ``k`` buffers of ``ny * nx * nd`` float32 live at once: the cost volume
+    ``vol`` of ``match_block`` and the aggregated cost ``S``
+    (``winner_take_all`` reads ``S`` and ``vol`` in place), ``k = 2`` with
+    the fast kernel (:mod:`tiledsm.match.sweep`, which aggregates without
+    copying the volume), ``k = 3`` with the reference kernel (whose
+    :func:`tiledsm.match.sgm.aggregate` makes a NaN-filled copy). Besides them the
     task holds one float32 sample buffer per view (``nv * ny * nx``), each
     view's image window, decimated by ``f``, and below the coarsest level
     its search band (``h_ref, lo, hi``: ``b = 1``, else ``b = 0``). Reading
@@ -117,7 +120,7 @@ def estimate_worker_memory(
     exist) briefly holds the raw masked array, its float32 masked copy and
     the NaN-filled result::
 
-        matching = 12 ny nx nd + 4 nv ny nx + 12 b ny nx + 4 nv W / f²
+        matching = 4 k ny nx nd + 4 nv ny nx + 12 b ny nx + 4 nv W / f²
         reading  = W (itemsize + 10) + 4 nv W / f²
         peak     = baseline + max(matching, reading)
 
@@ -145,6 +148,8 @@ def estimate_worker_memory(
         :data:`WORKER_BASELINE_MIB`).
     search_band : bool
         The task searches a band from a coarser level (``b`` above).
+    volumes : int
+        ``k``, cost-volume-sized buffers alive at once.
 
     Returns
     -------
@@ -153,10 +158,10 @@ def estimate_worker_memory(
     ny, nx = (int(v) for v in task_cells)
     cells = ny * nx
     held = 4 * views * window_px // (decimation * decimation)
-    volumes = 3 * 4 * cells * int(candidates)
-    matching = volumes + 4 * views * cells + (12 * cells if search_band else 0) + held
+    volume_bytes = int(volumes) * 4 * cells * int(candidates)
+    matching = volume_bytes + 4 * views * cells + (12 * cells if search_band else 0) + held
     reading = window_px * (int(itemsize) + 10) + held
-    return MemoryEstimate(int(baseline) + max(matching, reading), int(baseline), volumes, matching, reading)
+    return MemoryEstimate(int(baseline) + max(matching, reading), int(baseline), volume_bytes, matching, reading)
 
 
 def _largest_task(n: int, chunks: Sequence[int], halo: int) -> int:
@@ -215,7 +220,8 @@ def dsm_levels(views, grid, h_range: tuple[float, float], levels: int, params) -
             if win is not None:
                 window = max(window, (win[1] - win[0]) * (win[3] - win[2]))
         est = estimate_worker_memory(task, nd, len(views), window, geom.factor, itemsize,
-                                     search_band=level != levels - 1)
+                                     search_band=level != levels - 1,
+                                     volumes=3 if params.match.kernel == "reference" else 2)
         out.append(LevelPlan(level, g.shape, g.resolution, len(chunks[0]) * len(chunks[1]), geom.step, nd, task, window))
         if worst is None or est.total > worst.total:
             worst = est

@@ -1,0 +1,455 @@
+"""The SGVLL cost volume with the candidate loop compiled: sampling along
+each cell's vertical line and windowed ZNCC, one ground row at a time.
+
+:func:`cost_volume` gives the volume :func:`tiledsm.match.sgvll.match_block`
+scores, bit for bit the one of the plain sweep (one whole-block resampling
+and ZNCC per candidate height, ``kernel="reference"``), in a fraction of
+the time:
+
+- **Only the candidates a cell needs are sampled.** Cell ``p`` is sampled
+  at the labels of the cells whose ZNCC window contains it (the hull of
+  their ranges), not at every label of the block's bounding box.
+- **The projection is walked along the vertical line.** The image track of
+  a ground cell is piecewise linear in height on the projection lattice's
+  height nodes (:func:`tiledsm.match.sgvll.match_block`: exact RPC
+  projections every ``proj_stride`` cells and ``lattice_steps`` height
+  steps); the bilinear ground interpolation of the two nodes around the
+  candidate is done once per lattice segment of the line, and each
+  candidate costs one linear interpolation in height. The arithmetic is
+  that of the trilinear lookup of the plain sweep, so the samples are
+  identical.
+- **ZNCC window sums are shared between cells.** (Not between candidates:
+  in object space every view's samples move with the candidate height, so
+  no window sum serves two candidates.) Column sums over the window's rows
+  are computed once per (column, label) of a ground row and reused by the
+  ``2 * half + 1`` cells whose windows hold that column; the loops over
+  labels are innermost and contiguous (vectorised). Each cell's window
+  sums are still added in the fixed order of
+  :func:`tiledsm.match.cost.zncc_cost` (never running totals), so a cell's
+  cost does not depend on the block it is computed in.
+
+Samples of the ``2 * half + 1`` rows a ground row's windows need live in a
+ring buffer: memory beyond the cost volume is a few rows of samples.
+
+Conventions are those of :mod:`tiledsm.match.sgvll`: candidate ``k`` of
+cell ``[i, j]`` is the height ``href[i, j] + (base[i, j] + k) * step``;
+``vol[i, j, k]`` is ``1 - ZNCC`` (two views) or ``1 -`` the weighted mean
+ZNCC over view pairs (three or more), NaN when invalid (window touching
+nodata or the block's border, flat window), :data:`MASKED_COST` for
+``k >= nvalid[i, j]``.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from tiledsm.match.sampling import CUBIC_A, height_segment, interpolate, keys_far, keys_near, lattice_cell, row4
+
+__all__ = ["MASKED_COST", "cost_volume", "sample_hull", "track"]
+
+#: cost of candidates that lie outside a cell's own height range (never chosen)
+MASKED_COST = np.float32(4.0)
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def _row_hull(base, nvalid, i, half, lo, hi):
+    """``lo[c]``, ``hi[c]``: lowest first and highest last label of the
+    searched cells ``[i, j]`` of block row ``i`` whose window columns
+    ``j - half .. j + half`` hold column ``c`` and lie inside the block
+    (columns without one are left as they are)."""
+    nx = base.shape[1]
+    for j in range(half, nx - half):
+        if nvalid[i, j] <= 0:
+            continue
+        b = base[i, j]
+        t = b + nvalid[i, j] - 1
+        for c in range(j - half, j + half + 1):
+            lo[c] = min(lo[c], b)
+            hi[c] = max(hi[c], t)
+
+
+@nb.njit(nogil=True, cache=True)
+def sample_hull(base, nvalid, half):
+    """Labels at which each cell must be sampled: ``(lo, hi)`` int64 arrays,
+    the hull of the label ranges ``[base, base + nvalid - 1]`` of the cells
+    whose ``(2 half + 1)``-square window holds it and lies inside the block
+    (the cells whose cost is computed); ``lo > hi`` where none."""
+    ny, nx = base.shape
+    big = np.int64(1) << 60
+    lo_r = np.full((ny, nx), big, np.int64)
+    hi_r = np.full((ny, nx), -big, np.int64)
+    for i in range(half, ny - half):
+        _row_hull(base, nvalid, i, half, lo_r[i], hi_r[i])
+    lo = np.full((ny, nx), big, np.int64)
+    hi = np.full((ny, nx), -big, np.int64)
+    for i in range(ny):
+        for r in range(max(0, i - half), min(ny, i + half + 1)):
+            for j in range(nx):
+                if lo_r[r, j] < lo[i, j]:
+                    lo[i, j] = lo_r[r, j]
+                if hi_r[r, j] > hi[i, j]:
+                    hi[i, j] = hi_r[r, j]
+    return lo, hi
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def _bilinear(lat, t, i0, j0, w00, w01, w10, w11):
+    # the expression of sampling.trilinear, plane by plane
+    return w00 * lat[t, i0, j0] + w01 * lat[t, i0, j0 + 1] + w10 * lat[t, i0 + 1, j0] + w11 * lat[t, i0 + 1, j0 + 1]
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def _track(lat_r, lat_c, i0, j0, fy, fx, k0, dh, hr, step, l0, win_r, win_c, ys, xs):
+    """Image positions ``(ys[k], xs[k])`` (window pixels, array-index
+    convention) of one cell's vertical line at the heights ``hr + (l0 + k)
+    * step``, ``k < len(ys)``: the cell's lattice interval ``(i0, j0)`` and
+    fractions ``(fy, fx)`` (:func:`~tiledsm.match.sampling.lattice_cell`),
+    height nodes ``(k0 + t) * dh``. The line is piecewise linear between
+    height nodes: the bilinear ground interpolation of a segment's two
+    ends is done once per segment, each candidate is one linear
+    interpolation (the arithmetic of the trilinear lookup,
+    :func:`~tiledsm.match.sampling.trilinear`)."""
+    nh = lat_r.shape[0]
+    w00 = (1 - fy) * (1 - fx)
+    w01 = (1 - fy) * fx
+    w10 = fy * (1 - fx)
+    w11 = fy * fx
+    tcur = -1
+    ar = 0.0
+    br = 0.0
+    ac = 0.0
+    bc = 0.0
+    for k in range(ys.shape[0]):
+        t0, ft = height_segment(hr + (l0 + k) * step, dh, k0, nh)
+        if t0 != tcur:
+            # a new lattice segment of the vertical line: its two ends
+            ar = _bilinear(lat_r, t0, i0, j0, w00, w01, w10, w11)
+            br = _bilinear(lat_r, t0 + 1, i0, j0, w00, w01, w10, w11)
+            ac = _bilinear(lat_c, t0, i0, j0, w00, w01, w10, w11)
+            bc = _bilinear(lat_c, t0 + 1, i0, j0, w00, w01, w10, w11)
+            tcur = t0
+        ys[k] = ar + ft * (br - ar) - win_r
+        xs[k] = ac + ft * (bc - ac) - win_c
+
+
+@nb.njit(nogil=True, cache=True)
+def _track_many(lat_r, lat_c, stride, k0, dh, gi, gj, n0i, n0j, href, step, l0, ys, xs):
+    nh, gy, gx = lat_r.shape
+    for n in range(gi.shape[0]):
+        i0, fy = lattice_cell(gi[n], stride, n0i, gy)
+        j0, fx = lattice_cell(gj[n], stride, n0j, gx)
+        _track(lat_r, lat_c, i0, j0, fy, fx, k0, dh, href[n], step, l0, 0.0, 0.0, ys[n], xs[n])
+
+
+def track(lat_r, lat_c, stride, k0, dh, cells, nodes0, href, step, labels) -> tuple[np.ndarray, np.ndarray]:
+    """Image positions of the vertical lines of ``cells`` as the sweep
+    computes them (see :func:`cost_volume` for the lattice arguments).
+
+    Parameters
+    ----------
+    cells : (numpy.ndarray, numpy.ndarray)
+        Whole-grid row and column indices ``(n,)`` of the cells.
+    href : numpy.ndarray
+        ``(n,)`` reference heights, metres.
+    labels : (int, int)
+        First label and number of labels: heights ``href + label * step``.
+
+    Returns
+    -------
+    rows, cols : numpy.ndarray
+        ``(n, count)`` full-image positions in the array-index convention
+        (GDAL's minus 0.5) of the lattice's image.
+    """
+    gi = np.asarray(cells[0], np.int64).ravel()
+    gj = np.asarray(cells[1], np.int64).ravel()
+    l0, count = int(labels[0]), int(labels[1])
+    ys = np.empty((gi.size, count))
+    xs = np.empty((gi.size, count))
+    _track_many(np.ascontiguousarray(lat_r, np.float64), np.ascontiguousarray(lat_c, np.float64), int(stride),
+                int(k0), float(dh), gi, gj, int(nodes0[0]), int(nodes0[1]),
+                np.asarray(href, np.float64).ravel(), float(step), l0, ys, xs)
+    return ys, xs
+
+
+@nb.njit(nogil=True, cache=True)
+def _bicubic_many(img, ys, xs, out, wb):
+    """``out[k] = interpolate(img, ys[k], xs[k], cubic=True)`` for all ``k``,
+    bit for bit, in vectorisable stages: integer parts and kernel weights
+    of every sample first, then the 4 x 4 gathers."""
+    h, w = img.shape
+    m = ys.shape[0]
+    iy = wb[0, :m]
+    ix = wb[1, :m]
+    wx0, wx1, wx2, wx3 = wb[2, :m], wb[3, :m], wb[4, :m], wb[5, :m]
+    wy0, wy1, wy2, wy3 = wb[6, :m], wb[7, :m], wb[8, :m], wb[9, :m]
+    for k in range(m):
+        y = ys[k]
+        x = xs[k]
+        fy0 = np.floor(y)
+        fx0 = np.floor(x)
+        iy[k] = fy0
+        ix[k] = fx0
+        fy = y - fy0
+        fx = x - fx0
+        wx0[k] = keys_far(fx + 1.0, CUBIC_A)
+        wx1[k] = keys_near(fx, CUBIC_A)
+        wx2[k] = keys_near(1.0 - fx, CUBIC_A)
+        wx3[k] = keys_far(2.0 - fx, CUBIC_A)
+        wy0[k] = keys_far(fy + 1.0, CUBIC_A)
+        wy1[k] = keys_near(fy, CUBIC_A)
+        wy2[k] = keys_near(1.0 - fy, CUBIC_A)
+        wy3[k] = keys_far(2.0 - fy, CUBIC_A)
+    for k in range(m):
+        y0 = iy[k]
+        x0 = ix[k]
+        # NaN positions fail these tests too
+        if not (y0 >= 1.0 and x0 >= 1.0 and y0 + 2.0 < h and x0 + 2.0 < w):
+            out[k] = np.nan
+            continue
+        r = int(y0)
+        c = int(x0)
+        a0, a1, a2, a3 = wx0[k], wx1[k], wx2[k], wx3[k]
+        acc = 0.0
+        acc += wy0[k] * row4(img, r - 1, c, a0, a1, a2, a3)
+        acc += wy1[k] * row4(img, r, c, a0, a1, a2, a3)
+        acc += wy2[k] * row4(img, r + 1, c, a0, a1, a2, a3)
+        acc += wy3[k] * row4(img, r + 2, c, a0, a1, a2, a3)
+        out[k] = acc
+
+
+@nb.njit(nogil=True, cache=True)
+def _sample_row(img, lat_r, lat_c, stride, k0, dh, href, step, gi0, gj0, n0i, n0j, win_r, win_c, cubic, r,
+                lo, hi, out):
+    """Samples of one view at the cells of block row ``r``: ``out[j, k]``
+    at label ``lo[r, j] + k`` for the labels ``lo[r, j]..hi[r, j]``
+    (:func:`sample_hull`), at heights ``href[r, j] + label * step``."""
+    _, gy, gx = lat_r.shape
+    h, w = img.shape
+    nx = href.shape[1]
+    ns = out.shape[1]
+    yb = np.empty(ns)
+    xb = np.empty(ns)
+    wb = np.empty((10, ns))
+    i0, fy = lattice_cell(gi0 + r, stride, n0i, gy)
+    for j in range(nx):
+        l0 = lo[r, j]
+        l1 = hi[r, j]
+        if l1 < l0:
+            continue
+        j0, fx = lattice_cell(gj0 + j, stride, n0j, gx)
+        m = l1 - l0 + 1
+        ys = yb[:m]
+        xs = xb[:m]
+        # positions first, then the interpolation over them: two tight loops
+        _track(lat_r, lat_c, i0, j0, fy, fx, k0, dh, href[r, j], step, l0, win_r, win_c, ys, xs)
+        dst = out[j, :m]
+        if cubic:
+            _bicubic_many(img, ys, xs, dst, wb)
+        else:
+            for k in range(m):
+                dst[k] = interpolate(img, ys[k], xs[k], cubic, h, w)
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def _column_sums(ring, i, half, c, cb, m, lo, pair_u, pair_v, out):
+    """``out[q, k]``: sums over the rows ``i - half .. i + half`` (in that
+    order) of column ``c`` at label ``cb + k``, ``k < m``, of the samples
+    of each view (``q = v``), their squares (``nv + v``) and the products
+    of each view pair (``2 nv + p``). Loops over ``k`` on 1-D slices with a
+    non-negative index: they vectorise."""
+    if m <= 0:
+        return
+    nv = ring.shape[0]
+    wsz = ring.shape[1]
+    for q in range(out.shape[0]):
+        out[q, :m] = 0.0
+    for r in range(i - half, i + half + 1):
+        slot = r % wsz
+        off = cb - lo[r, c]
+        for v in range(nv):
+            src = ring[v, slot, c, off : off + m]
+            d1 = out[v, :m]
+            d2 = out[nv + v, :m]
+            for k in range(m):
+                x = np.float64(src[k])
+                d1[k] += x
+                d2[k] += x * x
+        for p in range(pair_u.shape[0]):
+            su = ring[pair_u[p], slot, c, off : off + m]
+            sv = ring[pair_v[p], slot, c, off : off + m]
+            d = out[2 * nv + p, :m]
+            for k in range(m):
+                d[k] += np.float64(su[k]) * np.float64(sv[k])
+
+
+@nb.njit(nogil=True, cache=True)
+def _zncc_row(ring, i, half, lo, base, nvalid, pair_u, pair_v, pair_w, eps, vol):
+    """Costs of the cells of block row ``i`` (all their labels) from the
+    samples of rows ``i - half .. i + half`` in ``ring`` (``(nv, 2 half +
+    1, nx, ns)``, row ``r`` in slot ``r % (2 half + 1)``, label ``lo[r, j]
+    + k`` at ``[.., j, k]``)."""
+    nv = ring.shape[0]
+    wsz = ring.shape[1]
+    nx = ring.shape[2]
+    ny = base.shape[0]
+    npairs = pair_u.shape[0]
+    inv_n = 1.0 / (wsz * wsz)
+    if i < half or i >= ny - half:
+        return
+    # label range of each column's sums: the cells of this row whose window holds it
+    big = np.int64(1) << 60
+    cb = np.full(nx, big, np.int64)
+    ct = np.full(nx, -big, np.int64)
+    _row_hull(base, nvalid, i, half, cb, ct)
+    ncs = 0
+    for c in range(nx):
+        ncs = max(ncs, ct[c] - cb[c] + 1)
+    if ncs <= 0:
+        return
+    nq = 2 * nv + npairs
+    # column sums over the window's rows (top to bottom), per quantity:
+    # S_v, S_vv, S_uv; made as the window moves right and kept for the
+    # 2 half + 1 columns it spans (a few kB: they stay in cache)
+    col = np.empty((wsz, nq, ncs))
+    nd = vol.shape[2]
+    win = np.empty((nq, nd))
+    total = np.empty(nd, np.float32)
+    count = np.empty(nd, np.float32)
+    made = 0
+    for j in range(half, nx - half):
+        while made <= j + half:
+            _column_sums(ring, i, half, made, cb[made], ct[made] - cb[made] + 1, lo, pair_u, pair_v, col[made % wsz])
+            made += 1
+        m = nvalid[i, j]
+        if m <= 0:
+            continue
+        b = base[i, j]
+        # window sums in the order of cost.zncc_cost: columns left to right
+        for q in range(nq):
+            w = win[q, :m]
+            for k in range(m):
+                w[k] = 0.0
+            for c in range(j - half, j + half + 1):
+                off = b - cb[c]
+                src = col[c % wsz, q, off : off + m]
+                for k in range(m):
+                    w[k] += src[k]
+        out = vol[i, j, :m]
+        if npairs == 1:
+            sa, sb, saa, sbb, sab = win[0, :m], win[1, :m], win[2, :m], win[3, :m], win[4, :m]
+            for k in range(m):
+                out[k] = _zncc(sa[k], sb[k], saa[k], sbb[k], sab[k], inv_n, eps)
+            continue
+        tot = total[:m]
+        cnt = count[:m]
+        for k in range(m):
+            tot[k] = 0.0
+            cnt[k] = 0.0
+        for p in range(npairs):
+            u = pair_u[p]
+            v = pair_v[p]
+            wp = pair_w[p]
+            sa, sb, saa, sbb, sab = win[u, :m], win[v, :m], win[nv + u, :m], win[nv + v, :m], win[2 * nv + p, :m]
+            for k in range(m):
+                cst = _zncc(sa[k], sb[k], saa[k], sbb[k], sab[k], inv_n, eps)
+                if cst == cst:
+                    tot[k] += wp * cst
+                    cnt[k] += wp
+        for k in range(m):
+            out[k] = tot[k] / cnt[k] if cnt[k] != 0 else np.float32(np.nan)
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def _zncc(s_a, s_b, s_aa, s_bb, s_ab, inv_n, eps):
+    """``1 - ZNCC`` (float32) from window sums, the arithmetic of
+    :func:`tiledsm.match.cost.zncc_cost`; NaN for a flat window or where a
+    sum is not finite (the window touched nodata). Written with selects,
+    not early returns, so that loops over candidates vectorise."""
+    va = s_aa - s_a * s_a * inv_n
+    vb = s_bb - s_b * s_b * inv_n
+    c = (s_ab - s_a * s_b * inv_n) / np.sqrt(va * vb)
+    if c > 1.0:
+        c = 1.0
+    elif c < -1.0:
+        c = -1.0
+    good = (va > eps * (1.0 + s_aa)) & (vb > eps * (1.0 + s_bb)) & (c == c)
+    return np.float32(1.0 - c) if good else np.float32(np.nan)
+
+
+def cost_volume(
+    imgs, lat_r, lat_c, stride, k0, dh, href, step, origin, nodes0, win_r, win_c, cubic, base, nvalid, half,
+    pair_w=None, details: dict | None = None, eps: float = 1e-6,
+) -> np.ndarray:
+    """The SGVLL cost volume of a block (see the module docstring).
+
+    Parameters
+    ----------
+    imgs : list of numpy.ndarray
+        One float32 image window per view (NaN nodata).
+    lat_r, lat_c : numpy.ndarray
+        ``(nv, nh, gy, gx)`` projection lattice of every view, array-index
+        pixel convention of the full image (``row - 0.5``, ``col - 0.5``);
+        ground nodes every ``stride`` cells of the whole grid from node
+        ``nodes0 = (n0i, n0j)``, height nodes ``(k0 + t) * dh`` metres.
+    href : numpy.ndarray
+        ``(ny, nx)`` float64 reference surface, metres.
+    step : float
+        Height step, metres.
+    origin : (int, int)
+        Whole-grid index of block cell ``[0, 0]``.
+    win_r, win_c : numpy.ndarray
+        ``(nv,)`` window origin of each view in its full image, pixels.
+    cubic : bool
+        Bicubic (Keys, a = -0.75) or bilinear sampling.
+    base, nvalid : numpy.ndarray
+        ``(ny, nx)`` int64 first label and number of labels of each cell.
+    half : int
+        ZNCC half window, cells.
+    pair_w : numpy.ndarray, optional
+        ``(nv, nv)`` pair weights (upper triangle read), three or more views.
+    details : dict, optional
+        Filled with ``n_samples``: (cell, label) samples taken per view.
+    eps : float
+        Flat-window threshold of :func:`tiledsm.match.cost.zncc_cost`.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(ny, nx, nd)`` float32 cost volume, ``nd = nvalid.max()``.
+    """
+    nv = len(imgs)
+    ny, nx = href.shape
+    nd = max(1, int(nvalid.max()))
+    base = np.ascontiguousarray(base, np.int64)
+    nvalid = np.ascontiguousarray(nvalid, np.int64)
+    vol = np.full((ny, nx, nd), MASKED_COST, np.float32)
+    # candidates whose window is not computed below stay invalid
+    for k in range(nd):
+        vol[:, :, k][k < nvalid] = np.nan
+    lo, hi = sample_hull(base, nvalid, half)
+    span = np.maximum(hi - lo + 1, 0)
+    ns = int(span.max()) if span.size else 0
+    if details is not None:
+        details["n_samples"] = int(span.sum())
+    if ns <= 0:
+        return vol
+    pairs = [(u, v) for u in range(nv) for v in range(u + 1, nv)]
+    pair_u = np.array([p[0] for p in pairs], np.int64)
+    pair_v = np.array([p[1] for p in pairs], np.int64)
+    w = np.ones((nv, nv), np.float32) if pair_w is None else np.asarray(pair_w, np.float32)
+    pw = np.array([w[u, v] for u, v in pairs], np.float32)
+    wsz = 2 * half + 1
+    ring = np.full((nv, wsz, nx, ns), np.nan, np.float32)
+    gi0, gj0 = int(origin[0]), int(origin[1])
+    n0i, n0j = int(nodes0[0]), int(nodes0[1])
+    href = np.ascontiguousarray(href, np.float64)
+    for r in range(ny):
+        slot = r % wsz
+        for v in range(nv):
+            _sample_row(imgs[v], lat_r[v], lat_c[v], stride, k0, dh, href, float(step), gi0, gj0, n0i, n0j,
+                        float(win_r[v]), float(win_c[v]), cubic, r, lo, hi, ring[v, slot])
+        i = r - half
+        if i >= half:
+            _zncc_row(ring, i, half, lo, base, nvalid, pair_u, pair_v, pw, float(eps), vol)
+    return vol
