@@ -104,3 +104,19 @@ def test_sr_o_beats_sr_r_beats_nothing(uav):
         sr_o(inp, indices=radial_select(inp, 0.0) or [0])
     with pytest.raises(MISRError, match="SR-R: needs at least 2 images"):
         sr_r(inp, indices=[3])
+
+
+def test_sr_refuses_when_registration_leaves_one_image(uav, monkeypatch):
+    """When ECC registers no image but the reference, SR-R and SR-O stop
+    with :class:`RegistrationError` (a one-image "multi-image SR" would be
+    scored as if it were one)."""
+    import tiledsm.misr.methods as methods
+    from tiledsm.misr.methods import RegistrationError
+
+    sc, _ = uav
+    fresh = SRInputs(sc.frames, sc.cameras, sc.grid, sc.dsm, 2)  # its own cache of registrations
+    monkeypatch.setattr(methods, "register", lambda moving, reference, *a, **k: methods.Registration(ecc=float("nan")))
+    with pytest.raises(RegistrationError, match="only 1 of 16 images registered"):
+        sr_r(fresh, "cr")
+    with pytest.raises(RegistrationError, match="only 1 of"):
+        sr_o(fresh, PSF("square"), "cr", max_iter=2)

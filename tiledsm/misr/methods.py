@@ -42,6 +42,11 @@ class MISRError(TiledsmError):
     image seeing the region); the message names the parameter."""
 
 
+class RegistrationError(MISRError):
+    """Fewer than 2 images could be registered to the reference ortho: the
+    result would be one image, not multi-image SR."""
+
+
 @dataclass(frozen=True, eq=False)
 class SRInputs:
     """What every method needs.
@@ -148,6 +153,11 @@ def _registered(inputs: SRInputs, indices, kernel: str) -> tuple[list[np.ndarray
         if reg is not None:
             orthos.append(ortho)
             regs[i] = reg
+    if len(orthos) < 2:
+        raise RegistrationError(
+            f"only {len(orthos)} of {len(set(indices))} images registered to the reference ortho (image {ref}) by ECC: "
+            "multi-image SR needs at least 2 (check the DSM, the cameras and the overlap)"
+        )
     return orthos, regs, ref
 
 

@@ -29,8 +29,9 @@ Steps (``pipeline: ortho_sr``), all under the run folder:
    ``dsm_noise_m``, ``psnr``, ``ssim``, ``resolved_px`` (narrowest stripe
    group with Michelson contrast >= 0.1, HR cells;
    :func:`tiledsm.misr.metrics.resolved_px`), ``shift_px``, ``psnr_raw``,
-   ``ssim_raw`` (:func:`score`), ``iterations`` (SR-O), ``product`` and a
-   ``warning`` when registration left fewer than 2 images.
+   ``ssim_raw`` (:func:`score`), ``iterations`` (SR-O), ``product``; a
+   method whose registration left fewer than 2 images is listed under
+   ``skipped`` with the reason instead.
 
 Conventions
 -----------
@@ -368,7 +369,7 @@ def run_ortho_sr(recipe: OrthoSRRecipe, out: Path, cluster: ClusterConfig | None
                  overwrite: bool = False) -> dict:
     """Run ``pipeline: ortho_sr`` into ``out`` (module docstring); returns
     the metrics written to ``out/metrics.json`` (last)."""
-    from tiledsm.misr.methods import MISRError, SRInputs
+    from tiledsm.misr.methods import MISRError, RegistrationError, SRInputs
     from tiledsm.misr.metrics import resolved_px
     from tiledsm.ortho.stage import write_ortho_products
     from tiledsm.pipelines import _write_json
@@ -399,6 +400,10 @@ def run_ortho_sr(recipe: OrthoSRRecipe, out: Path, cluster: ClusterConfig | None
             t0 = time.perf_counter()
             try:
                 img, rep = run_method(inputs[row.dsm_noise_m], row, m)
+            except RegistrationError as exc:  # a data outcome, not a recipe error: reported, not scored
+                skipped.append({"method": row.method, "slug": row.slug, "why": str(exc)})
+                log.warning("%s skipped: %s", row.slug, exc)
+                continue
             except MISRError as exc:
                 raise OrthoSRError(f"misr ({row.slug}): {exc}") from None
             dt = time.perf_counter() - t0
