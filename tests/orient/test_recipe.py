@@ -190,7 +190,7 @@ def test_dsm_recipe_orients_first(scene2, tmp_path):
     """``pipeline: dsm`` with ``orient:`` (4 GCPs) run as a user runs it:
     the images are oriented into ``orient/``, the DSM is matched on the
     corrected copies, and its heights sit on the truth (median within
-    0.3 m) where the biased cameras put them metres off."""
+    0.08 m) where the biased cameras put them metres off."""
     import subprocess
     import sys
 
@@ -207,9 +207,10 @@ def test_dsm_recipe_orients_first(scene2, tmp_path):
                         "--no-progress"], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     m = json.loads((tmp_path / "o" / "metrics.json").read_text())
-    assert m["orient"]["gcp_rms_px"]["after"] < 0.1 < 1.0 < m["orient"]["gcp_rms_px"]["before"]
+    assert m["orient"]["gcp_rms_px"]["after"] < 0.05 < 3.0 < m["orient"]["gcp_rms_px"]["before"]
     from tiledsm.io import open_product
 
     views = open_product(tmp_path / "o" / "dsm.zarr").attrs["views"]
     assert [Path(v).parent for v in views] == [tmp_path / "o" / "orient"] * 2, views
-    assert abs(m["vs_reference"]["median"]) < 0.3, m["vs_reference"]
+    # measured: median -0.05 m; GCP residuals 3.90 -> 0.036 px
+    assert abs(m["vs_reference"]["median"]) < 0.08, m["vs_reference"]
