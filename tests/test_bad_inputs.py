@@ -27,7 +27,8 @@ import rasterio
 
 from tiledsm.synth import make_scene
 
-PRODUCTS = ("metrics.json", "dsm.zarr", "dsm.tif", "dh.zarr", "dh.tif", "report.html", "recipe.resolved.yaml")
+PRODUCTS = ("metrics.json", "dsm.zarr", "dsm.tif", "dh.zarr", "dh.tif", "report.html", "recipe.resolved.yaml",
+            "ortho.zarr", "ortho.json", "orient.json")
 
 
 @pytest.fixture(scope="module")
@@ -66,6 +67,8 @@ def k(tmp_path_factory):
     f["one_px"] = with_rpc("one_px.tif", img[:1, :1], rpcs, width=1, height=1)
     lying = rasterio.rpc.RPC(**{**rpcs.to_dict(), "line_off": rpcs.line_off + 50000.0, "samp_off": rpcs.samp_off + 50000.0})
     f["rpc_elsewhere"] = with_rpc("rpc_elsewhere.tif", img, lying)
+    away = rasterio.rpc.RPC(**{**rpcs.to_dict(), "long_off": rpcs.long_off + 1.0})
+    f["ground_elsewhere"] = with_rpc("ground_elsewhere.tif", img, away)  # a scene 80 km east
 
     with rasterio.open(truth) as src:
         tprof, tdem = src.profile, src.read(1)
@@ -199,6 +202,10 @@ CASES = [
                                                 "--kernel", "lanczos"], lambda f: ["lanczos"]),
     Case("ortho-dsm-elsewhere", lambda f, out: ["ortho", str(f["v0"]), "--dsm", str(f["dsm_far"]), "--out", str(out)],
          lambda f: ["dsm_far.tif"]),
+    Case("ortho-truncated-image", lambda f, out: ["ortho", str(f["truncated"]), "--dsm", str(f["truth"]), "--out", str(out)],
+         lambda f: ["truncated.tif", "IMAGE"]),
+    Case("ortho-camera-file-missing", lambda f, out: ["ortho", str(f["v0"]), "--dsm", str(f["truth"]), "--out", str(out),
+                                                     "--camera", str(f["root"] / "nope.yaml")], lambda f: ["nope.yaml", "--camera"]),
     Case("ortho-image-without-camera", lambda f, out: ["ortho", str(f["no_rpc"]), "--dsm", str(f["truth"]), "--out", str(out)],
          lambda f: ["no_rpc.tif"]),
     # --- orient
@@ -209,6 +216,14 @@ CASES = [
          lambda f: ["gcps_bad_columns.csv"]),
     Case("orient-gcps-duplicate-ids", lambda f, out: ["orient", str(f["v0"]), str(f["v1"]), "--gcps", str(f["gcps_dup"]),
                                                      "--out", str(out)], lambda f: ["gcps_dup.csv"]),
+    Case("orient-no-common-ground", lambda f, out: ["orient", str(f["v0"]), str(f["ground_elsewhere"]), "--out", str(out)],
+         lambda f: ["ground_elsewhere.tif", "no common ground"]),
+    Case("orient-truncated-image", lambda f, out: ["orient", str(f["v0"]), str(f["truncated"]), "--out", str(out)],
+         lambda f: ["truncated.tif"]),
+    Case("orient-geoid-without-dem", lambda f, out: ["orient", str(f["v0"]), str(f["v1"]), "--geoid",
+                                                    str(f["geoid_elsewhere"]), "--out", str(out)], lambda f: ["--geoid"]),
+    Case("orient-dem-missing", lambda f, out: ["orient", str(f["v0"]), str(f["v1"]), "--dem", str(f["root"] / "nope_dem.tif"),
+                                              "--out", str(out)], lambda f: ["nope_dem.tif", "--dem"]),
     Case("orient-image-without-rpc", lambda f, out: ["orient", str(f["no_rpc"]), str(f["v1"]), "--out", str(out)],
          lambda f: ["no_rpc.tif"]),
     # --- info, synth

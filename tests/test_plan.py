@@ -507,6 +507,8 @@ EMITTERS = {
     "tiledsm/plan/recipes.py": ("dsm", "run"),
     "tiledsm/plan/stages.py:plan_sr": ("sr",),
     "tiledsm/plan/stages.py:plan_compare": ("compare",),
+    "tiledsm/plan/imagery.py:plan_ortho": ("ortho",),
+    "tiledsm/plan/imagery.py:plan_orient": ("orient",),
     "tiledsm/provenance.py:_refuse_or_take_over": ("dsm", "run", "compare"),
     "tiledsm/plan/core.py:check_workers": ("dsm", "run", "compare", "sr"),
     "tiledsm/plan/core.py:FieldNames": ("dsm",),

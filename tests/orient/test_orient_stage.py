@@ -115,3 +115,43 @@ def test_blunder_gcp_reported(scene2, points, tmp_path):
     assert rc == 0 and doc["rejected_gcps"] == ["g2"]
     assert "g2@view_1.tif" in doc["rejected_measurements"]
     assert doc["check_rms_px"]["after"] < 0.15
+
+
+def test_dry_run_prints_the_plan_and_writes_nothing(scene2, points, tmp_path, capsys):
+    info, true, biased, h, root = scene2
+    out = tmp_path / "o"
+    rc = main(["orient", *map(str, biased), "--gcps", str(points[0]), "--check-points", str(points[1]),
+               "--out", str(out), "--tile", "256", "--dry-run"])
+    text = capsys.readouterr().out
+    assert rc == 0 and not out.exists()
+    assert "plan of tiledsm orient (nothing computed, nothing written)" in text
+    assert "tie points: 4 tiles of 256 px over view_0.tif (512 x 512 px), matched in 1 other image(s)" in text
+    n_gcp = len({ln.split(",")[0] for ln in points[0].read_text().splitlines()[1:]})
+    assert f"--gcps: {points[0]} ({n_gcp} points" in text
+
+
+def test_interrupted_rerun_leaves_no_report_of_the_earlier_run(scene2, points, oriented, tmp_path, monkeypatch):
+    import shutil
+
+    import tiledsm.orient.export as export
+
+    info, true, biased, h, root = scene2
+    out = tmp_path / "o"
+    shutil.copytree(oriented[0], out)  # the products of a finished run
+    copy = export.copy_with_rpc
+    calls = {"n": 0}
+
+    def dies_at_the_second_image(*a, **kw):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return copy(*a, **kw)
+
+    monkeypatch.setattr(export, "copy_with_rpc", dies_at_the_second_image)
+    rc = main(["orient", *map(str, biased), "--gcps", str(points[0]), "--out", str(out), "--no-tie-points",
+               "--model", "shift"])
+    assert rc == 130 and calls["n"] == 2
+    # no report, and no RPC of the earlier run left to be taken for this one's: only the first image's new ones
+    left = sorted(p.name for p in out.iterdir())
+    assert left == ["view_0.tif", "view_0_RPC.TXT"], left
+    assert not (out / "orient.json").exists()

@@ -79,3 +79,64 @@ def test_s2p_pair_orthos_agree_on_tiledsm_dsm(tmp_path):
     assert len(shifts) >= 8
     # measured: every tile within 0.05 px (the raw RPCs, without the DSM's relative correction: up to 0.35 px)
     assert max(shifts) <= 0.06  # the issue asks <= 0.2 px
+
+
+def test_dry_run_prints_the_plan_and_writes_nothing(ortho_scene, tmp_path, capsys):
+    out = tmp_path / "o"
+    rc = main(["ortho", str(ortho_scene.views[0]), "--dsm", str(ortho_scene.truth_dsm), "--out", str(out),
+               "--resolution", "0.25", "--chunk", "128", "--dry-run"])
+    text = capsys.readouterr().out
+    assert rc == 0 and not out.exists()
+    assert "plan of tiledsm ortho (nothing computed, nothing written)" in text
+    assert "0.25 m cells (DSM cell / 2), 512 x 512 cells, chunks of 128: 4 x 4 = 16" in text
+    assert "tasks" in text and "warnings  none" in text
+
+
+def test_dsm_mostly_outside_the_image_warns(ortho_scene, tmp_path, capsys):
+    # the truth DSM in the middle of a grid three times as wide: the image sees ~1/9 of it
+    with rasterio.open(ortho_scene.truth_dsm) as src:
+        h, prof = src.read(1), src.profile
+    big = np.full((3 * h.shape[0], 3 * h.shape[1]), float(np.nanmedian(h)), np.float32)
+    big[h.shape[0]:2 * h.shape[0], h.shape[1]:2 * h.shape[1]] = h
+    t = prof["transform"]
+    prof.update(width=big.shape[1], height=big.shape[0],
+                transform=rasterio.Affine(t.a, 0, t.c - h.shape[1] * t.a, 0, t.e, t.f - h.shape[0] * t.e))
+    with rasterio.open(tmp_path / "big.tif", "w", **prof) as dst:
+        dst.write(big, 1)
+    rc = main(["ortho", str(ortho_scene.views[0]), "--dsm", str(tmp_path / "big.tif"), "--out", str(tmp_path / "o"),
+               "--dry-run"])
+    cap = capsys.readouterr()
+    assert rc == 0
+    assert "IMAGE sees only" in cap.err and "of the ortho grid" in cap.err
+    share = float(cap.err.split("sees only ")[1].split("%")[0]) / 100
+    assert 0.08 <= share <= 0.20  # 1/9 of the area, sampled on a 17 x 17 lattice
+
+
+def test_interrupted_rerun_leaves_no_report_of_the_earlier_run(ortho_scene, tmp_path, monkeypatch):
+    import tiledsm.ortho.rectify as rectify
+
+    out = tmp_path / "o"
+    base = ["ortho", str(ortho_scene.views[0]), "--dsm", str(ortho_scene.truth_dsm), "--out", str(out),
+            "--chunk", "64", "--scheduler", "synchronous", "--no-progress"]
+    assert main(base + ["--kernel", "bl"]) == 0
+    first = open_product(out / "ortho.zarr").values
+    calls = {"n": 0}
+    block = rectify._ortho_block
+
+    def dies_midway(*a, block_id=None, **kw):  # dask passes block_id to functions that name it
+        calls["n"] += 1
+        if calls["n"] == 5:  # of 16 chunks
+            raise KeyboardInterrupt
+        return block(*a, block_id=block_id, **kw)
+
+    monkeypatch.setattr(rectify, "_ortho_block", dies_midway)
+    assert main(base + ["--kernel", "cr"]) == 130  # what Ctrl-C gives
+    assert calls["n"] == 5
+    # the earlier store is intact; nothing describes it as the new run, nor as the old one
+    assert open_product(out / "ortho.zarr").attrs["kernel"] == "BL"
+    np.testing.assert_array_equal(open_product(out / "ortho.zarr").values, first)
+    assert not any((out / n).exists() for n in ("ortho.json", "ortho.tif", "ortho.png"))
+    assert not (out / ".tiledsm.lock").exists()
+    monkeypatch.undo()
+    assert main(base + ["--kernel", "cr"]) == 0
+    assert json.loads((out / "ortho.json").read_text())["attrs"]["kernel"] == "CR"

@@ -104,7 +104,7 @@ def test_bad_inputs():
     src = ImageSource.from_array(image, cam, name="frame.tif")
     away = ImageSource.from_array(image, cam.replace(position=(cam.position[0] + 1000, cam.position[1], 160.0)),
                                   name="far.tif")
-    with pytest.raises(NoOverlapError, match="far.tif: its camera does not see the DSM's ground"):
+    with pytest.raises(NoOverlapError, match="far.tif: its camera does not see the ground of the DSM"):
         orthorectify(away, dsm)
     with pytest.raises(GridError, match=r"bounds: .* is not covered by the DSM"):
         orthorectify(src, dsm, bounds=(grid.x0 - 50, grid.y0 - 5, grid.x0 + 5, grid.y0))

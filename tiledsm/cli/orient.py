@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from tiledsm.cli.run import add_cluster_arguments, add_plan_arguments
+
 __all__ = ["add_parser"]
 
 
@@ -29,51 +31,43 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    help="bias model of every image (default: per image by point count)")
     p.add_argument("--no-tie-points", action="store_true", help="adjust on GCPs only")
     p.add_argument("--tile", type=int, default=512, help="tie-point tile side, pixels")
-    p.add_argument("--workers", type=int, default=None, help="threads for the tie-point tiles (default: one per core)")
+    add_cluster_arguments(p)
+    add_plan_arguments(p, large=False)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    import dask
+    from contextlib import nullcontext
 
-    from tiledsm.errors import InvalidOptionError
-    from tiledsm.orient.dem import ReferenceDEM
+    from tiledsm.cli.run import cluster_config, print_warnings
+    from tiledsm.cluster import compute_context
     from tiledsm.orient.stage import OrientParams, orient_images, write_orientation
     from tiledsm.orient.tracks import TrackParams
+    from tiledsm.plan import plan_orient
+    from tiledsm.provenance import OutputLock
 
-    if args.geoid and not args.dem:
-        raise InvalidOptionError("--geoid: only meaningful with --dem")
-    if args.tile < 64:
-        raise InvalidOptionError(f"--tile: must be >= 64 pixels, got {args.tile}")
-    if args.workers is not None and args.workers < 1:
-        raise InvalidOptionError(f"--workers: must be >= 1, got {args.workers}")
-    if len(args.images) < 2 and not args.gcps:
-        raise InvalidOptionError("IMAGES: one image needs --gcps (tie points need two or more images)")
+    cluster = cluster_config(args)
+    plan = plan_orient(args.images, args.out, gcps=args.gcps, check_points=args.check_points, dem=args.dem,
+                       geoid=args.geoid, model=args.model, tie_points=not args.no_tie_points, tile=args.tile,
+                       cluster=cluster)
+    print_warnings("orient", plan.warnings)
+    if args.dry_run:
+        print(plan.summary())
+        return 0
+    prepared = plan.product
+    paths = {i.role: i.path for i in plan.inputs}  # absolute
     params = OrientParams(model=args.model, tie_points=not args.no_tie_points, tracks=TrackParams(tile=args.tile))
-    dem = None
-    if args.dem:
-        from tiledsm.geometry.rpc_io import find_camera
-
-        dem = ReferenceDEM.for_cameras(args.dem, [find_camera(img)[0] for img in args.images],
-                                       [_window(img)[1::2] for img in args.images], geoid=args.geoid)
-    with dask.config.set(scheduler="threads", num_workers=args.workers):
-        o = orient_images(args.images, args.gcps, args.check_points, dem, params)
-    doc = write_orientation(o, args.out, params, extra={"command": "tiledsm orient", "inputs": {
-        "images": [str(Path(p).resolve()) for p in args.images], "gcps": args.gcps,
-        "check_points": args.check_points, "dem": args.dem, "geoid": args.geoid}})
+    with OutputLock(plan.out):
+        # the tie-point tiles are the only parallel part; GCP-only runs start no cluster
+        with compute_context(cluster) if params.tie_points and len(prepared.images) > 1 else nullcontext():
+            o = orient_images(prepared.images, paths.get("--gcps"), paths.get("--check-points"), prepared.dem,
+                              params, rpcs=prepared.rpcs)
+        doc = write_orientation(o, plan.out, params, extra={"command": "tiledsm orient", "warnings": plan.warnings,
+                                                            "inputs": {
+            "images": list(prepared.images), "gcps": paths.get("--gcps"),
+            "check_points": paths.get("--check-points"), "dem": paths.get("--dem"), "geoid": paths.get("--geoid")}})
     _print_table(doc)
     return 0
-
-
-def _window(path) -> tuple[float, float, float, float]:
-    import warnings
-
-    import rasterio
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        with rasterio.open(path) as ds:
-            return 0.0, float(ds.height), 0.0, float(ds.width)
 
 
 def _fmt(v) -> str:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from tiledsm.cli.run import add_cluster_arguments
+from tiledsm.cli.run import add_cluster_arguments, add_plan_arguments
 
 __all__ = ["add_parser"]
 
@@ -31,20 +31,28 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--no-occlusion", action="store_true", help="do not mask cells hidden from the view")
     p.add_argument("--occlusion-tolerance", type=float, default=None, help="metres (default: one DSM cell)")
     add_cluster_arguments(p)
+    add_plan_arguments(p, large=False)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from tiledsm.cli.run import cluster_config
-    from tiledsm.ortho.stage import ortho_files, write_ortho_products
+    from tiledsm.cli.run import cluster_config, print_warnings
+    from tiledsm.ortho.stage import write_ortho_products
+    from tiledsm.plan import plan_ortho
+    from tiledsm.provenance import OutputLock
 
     cluster = cluster_config(args)
-    ortho = ortho_files(
-        args.image, args.dsm, kernel=args.kernel, resolution=args.resolution, chunk=args.chunk,
+    plan = plan_ortho(
+        args.image, args.dsm, args.out, kernel=args.kernel, resolution=args.resolution, chunk=args.chunk,
         camera_file=args.camera, bounds=args.bounds, crs=args.crs, occlusion=not args.no_occlusion,
-        occlusion_tolerance=args.occlusion_tolerance,
+        occlusion_tolerance=args.occlusion_tolerance, cluster=cluster,
     )
-    report = write_ortho_products(ortho, args.out, cluster=cluster)
-    print(f"{args.out}/ortho.tif: {report['shape'][0]} x {report['shape'][1]} cells of {report['resolution_m']:g} m, "
+    print_warnings("ortho", plan.warnings)
+    if args.dry_run:
+        print(plan.summary())
+        return 0
+    with OutputLock(plan.out):
+        report = write_ortho_products(plan.product, plan.out, cluster=cluster, warnings=plan.warnings)
+    print(f"{plan.out}/ortho.tif: {report['shape'][0]} x {report['shape'][1]} cells of {report['resolution_m']:g} m, "
           f"{report['valid_share']:.0%} valid ({report['attrs']['kernel']})")
     return 0

@@ -41,7 +41,7 @@ their cameras), :mod:`.stores` (zarr products and resumable stores) and
 """
 
 from tiledsm.io.scenes import open_scene, scene_rpc
-from tiledsm.io.atomic import atomic_path
+from tiledsm.io.atomic import atomic_path, withdraw
 from tiledsm.io.stores import write_zarr, open_product, ChunkStore, create_store, write_blocks, write_resumable
 from tiledsm.io.export import write_cog, write_geotiff_with_rpc
 
@@ -49,6 +49,7 @@ __all__ = [
     "open_scene",
     "scene_rpc",
     "atomic_path",
+    "withdraw",
     "write_zarr",
     "open_product",
     "write_cog",

@@ -21,6 +21,19 @@ def remove_path(p: Path) -> None:
             p.unlink()
 
 
+def withdraw(folder: str | os.PathLike, names) -> list[str]:
+    """Remove the products ``names`` of ``folder`` that exist, in the given
+    order (a report first, so that it never describes products that are
+    half gone), before a run writes them anew: an interrupted run then
+    leaves no report of an earlier run beside new products. Returns the
+    names removed."""
+    folder = Path(folder)
+    removed = [n for n in names if (folder / n).exists()]
+    for n in removed:
+        remove_path(folder / n)
+    return removed
+
+
 def _tmp_sibling(final: Path, tag: str) -> Path:
     return final.with_name(f".{final.name}.{tag}-{uuid.uuid4().hex[:10]}{final.suffix}")
 

@@ -341,13 +341,16 @@ def write_orientation(o: Orientation, out_dir: str | Path, params: OrientParams 
     - ``residuals.csv``: every GCP/check-point residual before/after;
     - ``residuals.png``: residual vectors over each image.
 
+    These files of an earlier run are withdrawn first (the report first);
+    ``orient.json`` is written last.
+
     Returns
     -------
     dict
         The ``orient.json`` document.
     """
     from tiledsm.geometry.rpc_io import rpc_txt_path, write_rpc_txt
-    from tiledsm.io import atomic_path
+    from tiledsm.io import atomic_path, withdraw
     from tiledsm.orient.export import copy_with_rpc
     from tiledsm.orient.quicklook import residual_figure
 
@@ -357,10 +360,14 @@ def write_orientation(o: Orientation, out_dir: str | Path, params: OrientParams 
     stems = [p.stem for p in o.paths]
     if len(set(stems)) != len(stems):
         raise InvalidOptionError(f"IMAGES: two images share a file stem ({', '.join(stems)}); outputs would collide")
+    for p in o.paths:
+        if (out / (p.stem + ".tif")).resolve() == p.resolve():
+            raise InvalidOptionError(f"--out: {out} holds the input {p.name}; choose another folder")
+    # an interrupted run must not leave the report of an earlier one beside new RPCs
+    withdraw(out, ["orient.json", "residuals.csv", "residuals.png"]
+             + [f"{s}{e}" for s in stems for e in ("_RPC.TXT", ".tif")])
     for i, p in enumerate(o.paths):
         img = out / (p.stem + ".tif")
-        if img.resolve() == p.resolve():
-            raise InvalidOptionError(f"--out: {out} holds the input {p.name}; choose another folder")
         copy_with_rpc(p, img, o.rpcs_after[i])
         write_rpc_txt(o.rpcs_after[i], rpc_txt_path(img))
         files.append({"image": str(img), "rpc_txt": str(rpc_txt_path(img))})

@@ -183,9 +183,9 @@ def _lattice(grid: GroundGrid, n: int = 17) -> tuple[np.ndarray, np.ndarray]:
     return np.meshgrid(xs, ys)
 
 
-def check_sees(source: ImageSource, grid: GroundGrid, h_range: tuple[float, float]) -> float:
+def check_sees(source: ImageSource, grid: GroundGrid, h_range: tuple[float, float], dsm_name: str = "") -> float:
     """Share of a 17 x 17 lattice of the grid (at the mid height) that
-    projects inside the image.
+    projects inside the image; ``dsm_name`` names the DSM in the error.
 
     Raises
     ------
@@ -198,7 +198,7 @@ def check_sees(source: ImageSource, grid: GroundGrid, h_range: tuple[float, floa
     inside = (r >= 0) & (r <= source.shape[0]) & (c >= 0) & (c <= source.shape[1])
     if not inside.any():
         raise NoOverlapError(
-            f"{source.name or 'image'}: its camera does not see the DSM's ground "
+            f"{source.name or 'image'}: its camera does not see the ground of the DSM{dsm_name} "
             f"(bounds {tuple(round(b, 2) for b in grid.bounds)} in {grid.crs}, heights "
             f"{h_range[0]:.1f}..{h_range[1]:.1f} m)")
     return float(inside.mean())
@@ -384,7 +384,8 @@ def orthorectify(
     -------
     xarray.DataArray
         ``ortho`` float32 ``(y, x)``, dask-backed, CRS/transform written;
-        attrs ``kernel``, ``factor``, ``camera_source``, ``halo_cells``.
+        attrs ``kernel``, ``factor``, ``camera_source``, ``halo_cells``,
+        ``seen_share`` (of the region, seen by the camera: :func:`check_sees`).
 
     Raises
     ------
@@ -421,7 +422,7 @@ def orthorectify(
         h_range = (float(lo), float(hi))
     if not all(np.isfinite(h_range)):
         raise GridError(f"DSM{_name(height)}: no height in the region (all NaN)")
-    check_sees(source, dgrid, h_range)
+    seen = check_sees(source, dgrid, h_range, _name(height))
     grid = ortho_grid(dgrid, params.factor, chunk or dgrid.chunk * params.factor)
     halo, vmax = ortho_halo(source.camera, dgrid, h_range) if params.occlusion else (0, 0.0)
     # per axis: a halo no deeper than the DSM (beyond it all is NaN) and
@@ -441,7 +442,7 @@ def orthorectify(
     result = result.rio.write_crs(grid.crs).rio.write_transform(grid.transform)
     result.attrs.update(
         kernel=get_kernel(params.kernel).label, factor=f, camera_source=str(getattr(source.camera, "source", "")),
-        image=source.name, occlusion=int(params.occlusion), halo_cells=halo, max_tan_off_nadir=vmax,
+        image=source.name, occlusion=int(params.occlusion), halo_cells=halo, max_tan_off_nadir=vmax, seen_share=seen,
         units="DN", long_name=f"orthoimage ({get_kernel(params.kernel).label})",
     )
     return result

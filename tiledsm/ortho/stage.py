@@ -14,12 +14,13 @@ import json
 import math
 import time
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import xarray as xr
 
 from tiledsm.cluster import ClusterConfig, compute_context, compute_with_progress
-from tiledsm.errors import InvalidOptionError, NoOverlapError
+from tiledsm.errors import InvalidOptionError
 from tiledsm.ortho.rectify import ImageSource, OrthoParams, orthorectify
 
 __all__ = ["open_source", "matched_camera", "open_dsm", "resolution_factor", "ortho_files", "write_ortho_products"]
@@ -125,24 +126,24 @@ def ortho_files(
     if chunk % factor:
         raise InvalidOptionError(f"--chunk: must be a multiple of the resolution factor {factor}, got {chunk}")
     params = OrthoParams(kernel=kernel, factor=factor, occlusion=occlusion, occlusion_tolerance=occlusion_tolerance)
-    try:
-        return orthorectify(source, height, params, chunk=chunk, bounds=bounds, crs=crs)
-    except NoOverlapError as exc:
-        raise NoOverlapError(f"{exc}; --dsm {Path(dsm).resolve()}") from None
+    return orthorectify(source, height, params, chunk=chunk, bounds=bounds, crs=crs)
 
 
 def write_ortho_products(
     ortho: xr.DataArray, out: str | Path, *, cluster: ClusterConfig = ClusterConfig(), cog: bool = True,
-    quicklook: bool = True, name: str = "ortho",
+    quicklook: bool = True, name: str = "ortho", warnings: Sequence[str] = (),
 ) -> dict:
     """Compute ``ortho`` into ``out/NAME.zarr`` (atomic), export
     ``NAME.tif`` (COG) and ``NAME.png``, write ``NAME.json`` (attrs, valid
-    share, timings). Returns that report."""
-    from tiledsm.io import atomic_path, open_product, write_cog, write_zarr
+    share, timings, the plan's ``warnings``) last. Products of an earlier run under these names are
+    withdrawn first (the report first), so an interrupted run never leaves
+    an old report or export beside a new store. Returns the report."""
+    from tiledsm.io import atomic_path, open_product, withdraw, write_cog, write_zarr
     from tiledsm.quicklook import quicklook as make_quicklook
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    withdraw(out, [f"{name}.json", f"{name}.tif", f"{name}.png"])
     t0 = time.perf_counter()
     with compute_context(cluster) as client:
         write_zarr(ortho, out / f"{name}.zarr",
@@ -160,6 +161,7 @@ def write_ortho_products(
         "crs": str(ortho.rio.crs),
         "valid_share": float(np.isfinite(stored.data).mean().compute()),
         "timings": {"ortho_s": t1 - t0, "export_s": time.perf_counter() - t1},
+        "warnings": list(warnings),
     }
     with atomic_path(out / f"{name}.json") as tmp:
         Path(tmp).write_text(json.dumps(report, indent=2, default=str))

@@ -2,8 +2,9 @@
 
 A :class:`Plan` is made before any cluster starts or any chunk is computed,
 by :func:`plan_recipe` (``tiledsm dsm`` and ``tiledsm run``),
-:func:`plan_sr` (``tiledsm sr``) and :func:`plan_compare`
-(``tiledsm compare``). It
+:func:`plan_sr` (``tiledsm sr``), :func:`plan_compare`
+(``tiledsm compare``), :func:`plan_ortho` (``tiledsm ortho``) and
+:func:`plan_orient` (``tiledsm orient``). It
 
 - resolves every path to an absolute one (a relative ``--out`` then means
   the same folder to workers started elsewhere, e.g. on an external
@@ -34,7 +35,8 @@ opened views, tie points and lazy DSM, so nothing is done twice.
 
 The package: :mod:`.core` (the plan, limits, shared checks), :mod:`.memory`
 (worker memory, level sizes), :mod:`.dsm`, :mod:`.recipes` (whole recipes)
-and :mod:`.stages` (``sr``, ``compare``).
+and :mod:`.stages` (``sr``, ``compare``), :mod:`.imagery` (``ortho``,
+``orient``).
 
 Conventions: sizes in cells are ``rows x columns``; memory in bytes (MiB
 and GiB in text are 2**20 and 2**30 bytes); heights are ellipsoidal metres.
@@ -74,6 +76,10 @@ from tiledsm.plan.stages import (
     plan_sr,
     plan_compare,
 )
+from tiledsm.plan.imagery import (
+    plan_ortho,
+    plan_orient,
+)
 
 __all__ = [
     "CLI_NAMES",
@@ -97,6 +103,8 @@ __all__ = [
     "plan_recipe",
     "plan_sr",
     "plan_compare",
+    "plan_ortho",
+    "plan_orient",
     "WORKER_BASELINE_MIB",
     "LOW_COMPLETENESS",
     "MOSTLY_OUTSIDE",
