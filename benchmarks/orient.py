@@ -50,7 +50,7 @@ sys.path.insert(0, str(ROOT))
 from conftest import BIASES, relative_error  # noqa: E402
 
 from tiledsm.cli import main  # noqa: E402
-from tiledsm.geometry import find_camera  # noqa: E402
+from tiledsm.io.cameras import find_camera  # noqa: E402
 from tiledsm.orient import OrientParams, ReferenceDEM, TrackParams, orient_images, write_orientation  # noqa: E402
 from tiledsm.orient.p2l import p2l_filter, ransac_filter  # noqa: E402
 from tiledsm.orient.simulate import (  # noqa: E402

@@ -7,7 +7,7 @@ candidate height by the mean ZNCC of the three pairs, plainly averaged and
 weighted by each pair's squared parallax (``SGVLLParams.weight_pairs``).
 Scores against the truth on the cells visible in every view: NMAD, RMSE and
 median error (metres) on the common cells, where every case has a height
-(:func:`tiledsm.workflows.sr_dsm.compare_on_common`), so a case cannot score
+(:func:`tiledsm.workflows.sr_scores.compare_on_common`), so a case cannot score
 better by leaving holes; completeness is each case's own share of the
 visible truth cells.
 
@@ -56,9 +56,9 @@ def score_cases(heights: dict[str, np.ndarray], truth: np.ndarray, visible: np.n
         with a height).
     common : dict
         ``count``, ``cells``, ``fraction``, ``dsms`` of the common cells
-        (see :func:`tiledsm.workflows.sr_dsm.compare_on_common`).
+        (see :func:`tiledsm.workflows.sr_scores.compare_on_common`).
     """
-    from tiledsm.workflows.sr_dsm import compare_on_common
+    from tiledsm.workflows.sr_scores import compare_on_common
 
     res = compare_on_common(heights, truth, visible)
     rows = {name: {"nmad_m": s["nmad"], "rmse_m": s["rmse"], "median_m": s["median"], "scored": s["count"],
@@ -69,7 +69,7 @@ def score_cases(heights: dict[str, np.ndarray], truth: np.ndarray, visible: np.n
 def markdown_table(rows: list[dict], common: dict) -> str:
     """The printed table: one row per case (``case``, ``match_s`` seconds and
     the keys of :func:`score_cases`), under a line giving the common cells."""
-    from tiledsm.workflows.sr_dsm import common_cells_line
+    from tiledsm.workflows.sr_scores import common_cells_line
 
     table = [common_cells_line(common, "the visible truth"), "",
              "| case | NMAD (m) | RMSE (m) | median (m) | completeness | match (s) |", "|---|---|---|---|---|---|"]
@@ -81,10 +81,10 @@ def markdown_table(rows: list[dict], common: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     from tiledsm.cluster import ClusterConfig
     from tiledsm.dsm import DSMParams, dsm_from_pair
-    from tiledsm.geometry.grid import GroundGrid
+    from tiledsm.io.grids import grid_like
     from tiledsm.io import open_product
     from tiledsm.match.sgvll import SGVLLParams
-    from tiledsm.pipelines import _reference_on_grid, write_dsm_products
+    from tiledsm.workflows.common import reference_on_grid, write_dsm_products
     from tiledsm.synth import make_scene
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
 
     work = Path(tempfile.mkdtemp(prefix="tiledsm_views_"))
     scene = make_scene(work / "scene", size=args.size, gsd=0.5, bh=0.4, seed=args.seed, views=3)
-    grid = GroundGrid.like(scene.truth_dsm, chunk=256)
+    grid = grid_like(scene.truth_dsm, chunk=256)
     cases = [
         ("views 0-1", scene.views[:2], True),
         ("3 views, plain mean ZNCC", scene.views, False),
@@ -113,8 +113,8 @@ def main(argv: list[str] | None = None) -> int:
         height = open_product(out / "dsm.zarr")["height"]
         heights[name] = height.values
         print(f"{name}: matched in {timings[name]['match_s']:.1f} s", flush=True)
-    truth = _reference_on_grid(scene.truth_dsm, height).values
-    visible = _reference_on_grid(scene.visible_mask, height).values > 0.5
+    truth = reference_on_grid(scene.truth_dsm, height).values
+    visible = reference_on_grid(scene.visible_mask, height).values > 0.5
     scores, common = score_cases(heights, truth, visible)
     rows = [{"case": name, **timings[name], **scores[name]} for name in heights]
     table = markdown_table(rows, common)

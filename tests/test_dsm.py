@@ -17,8 +17,9 @@ from tiledsm.cluster import ClusterConfig
 from tiledsm.dsm import DSMParams, dsm_from_pair
 from tiledsm.errors import NoOverlapError, TiledsmError
 from tiledsm.geometry.grid import GroundGrid
+from tiledsm.io.grids import grid_like
 from tiledsm.io import open_product
-from tiledsm.pipelines import _reference_on_grid, write_dsm_products
+from tiledsm.workflows.common import reference_on_grid, write_dsm_products
 from tiledsm.synth import make_scene
 
 SYNC = ClusterConfig(scheduler="synchronous", progress=False)
@@ -45,7 +46,7 @@ def scene_dsms(scene, tmp_path_factory):
     """The same scene on the truth grid with two chunkings."""
     out = {}
     for chunk in (256, 1024):
-        grid = GroundGrid.like(scene.truth_dsm, chunk=chunk)
+        grid = grid_like(scene.truth_dsm, chunk=chunk)
         ds, report = dsm_from_pair(*scene.views, grid=grid, params=DSMParams(chunk=chunk))
         out[chunk] = _compute(ds, tmp_path_factory.mktemp(f"dsm{chunk}"))
     return out
@@ -55,12 +56,12 @@ def _visible(scene, like):
     mask_path = getattr(scene, "visible_mask", None)
     if mask_path is None:
         return np.ones(like.shape, bool)
-    return _reference_on_grid(mask_path, like).values > 0.5
+    return reference_on_grid(mask_path, like).values > 0.5
 
 
 def test_synthetic_truth_accuracy(scene, scene_dsms):
     dsm = scene_dsms[1024]["height"]
-    truth = _reference_on_grid(scene.truth_dsm, dsm).values
+    truth = reference_on_grid(scene.truth_dsm, dsm).values
     vis = _visible(scene, dsm) & np.isfinite(truth)
     # leave out a 2 % frame: the sensor footprint does not cover the grid's corners
     frame = np.zeros_like(vis)
@@ -130,7 +131,7 @@ def test_distributed_cluster_matches_local(scene, scene_dsms, tmp_path):
             if time.time() > deadline:
                 pytest.fail("dask scheduler/workers did not start within 60 s")
             time.sleep(0.5)
-        grid = GroundGrid.like(scene.truth_dsm, chunk=1024)
+        grid = grid_like(scene.truth_dsm, chunk=1024)
         ds, _ = dsm_from_pair(*scene.views, grid=grid, params=DSMParams(chunk=1024))
         remote = _compute(ds, tmp_path / "remote", ClusterConfig(scheduler=addr, progress=False))
     finally:
@@ -150,7 +151,7 @@ def test_views_without_overlap(shared_data, tmp_path):
 
 
 def test_grid_outside_footprint_gives_nan_chunks(scene, tmp_path):
-    g = GroundGrid.like(scene.truth_dsm, chunk=64)
+    g = grid_like(scene.truth_dsm, chunk=64)
     far = GroundGrid(g.crs, g.x0 + 50_000, g.y0, g.resolution, 128, 128, chunk=64)
     ds, _ = dsm_from_pair(*scene.views, grid=far, params=DSMParams(chunk=64, height_range=scene.height_range))
     out = _compute(ds, tmp_path / "far")
@@ -166,7 +167,7 @@ def test_all_nodata_view(scene, tmp_path):
         with rasterio.open(blank, "w", **profile) as dst:
             dst.write(np.zeros((1, src.height, src.width), src.dtypes[0]))
             dst.rpcs = rpcs
-    grid = GroundGrid.like(scene.truth_dsm, chunk=128)
+    grid = grid_like(scene.truth_dsm, chunk=128)
     ds, _ = dsm_from_pair(scene.views[0], blank, grid=grid, params=DSMParams(chunk=128, height_range=scene.height_range))
     out = _compute(ds, tmp_path / "blank")
     assert np.isnan(out["height"].values).all()
@@ -188,7 +189,7 @@ def test_heights_above_geoid_match_proj_vgridshift(shared_data, scene):
     from tiledsm.dsm import heights_above_geoid
 
     gtx = shared_data("shareloc_phr_ventoux", "geoid", "egm96_15.gtx")
-    grid = GroundGrid.like(scene.truth_dsm, chunk=96)
+    grid = grid_like(scene.truth_dsm, chunk=96)
     h = np.full(grid.shape, 500.0, np.float32)
     ds = xr.Dataset({"height": (("y", "x"), h)}, coords={"y": grid.y, "x": grid.x}).chunk(96)
     ds = ds.rio.write_crs(grid.crs)
@@ -207,7 +208,7 @@ def test_geoid_grid_missing_fails_before_running(scene, tmp_path):
     from tiledsm.dsm import heights_above_geoid
     from tiledsm.errors import InputFileError
 
-    grid = GroundGrid.like(scene.truth_dsm, chunk=128)
+    grid = grid_like(scene.truth_dsm, chunk=128)
     ds = xr.Dataset({"height": (("y", "x"), np.zeros(grid.shape, np.float32))}, coords={"y": grid.y, "x": grid.x})
     with pytest.raises(InputFileError, match="nope.gtx"):
         heights_above_geoid(ds.rio.write_crs(grid.crs), tmp_path / "nope.gtx")
@@ -250,14 +251,14 @@ def test_default_grid_in_a_given_crs(scene):
     assert report["grid"]["crs"] == "EPSG:2154" and report["grid"]["resolution"] == 1.0
     assert ds.rio.crs.to_epsg() == 2154
     # the grid covers the truth grid's centre (both views see it)
-    truth = GroundGrid.like(scene.truth_dsm)
+    truth = grid_like(scene.truth_dsm)
     x, y = Transformer.from_crs(truth.crs, "EPSG:2154", always_xy=True).transform(truth.x.mean(), truth.y.mean())
     assert ds.x.min() < x < ds.x.max() and ds.y.min() < y < ds.y.max()
 
 
 def test_height_range_without_any_match_gives_nan(scene, tmp_path):
     """A search range far above the ground: every cell is rejected (NaN), no crash."""
-    grid = GroundGrid.like(scene.truth_dsm, chunk=64).subgrid(448, 576, 448, 576)
+    grid = grid_like(scene.truth_dsm, chunk=64).subgrid(448, 576, 448, 576)
     lo = scene.height_range[1] + 2000.0
     ds, _ = dsm_from_pair(*scene.views, grid=grid, params=DSMParams(chunk=64, height_range=(lo, lo + 100.0)))
     out = _compute(ds, tmp_path / "off")

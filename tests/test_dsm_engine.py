@@ -14,7 +14,8 @@ import pytest
 
 from tiledsm.dsm import DSMParams, dsm_from_pair
 from tiledsm.geometry.grid import GroundGrid
-from tiledsm.pipelines import _reference_on_grid
+from tiledsm.io.grids import grid_like
+from tiledsm.workflows.common import reference_on_grid
 from tiledsm.synth import TowerParams, make_scene
 
 SIZE = 384  # scene side, pixels (= truth grid side, cells)
@@ -56,8 +57,8 @@ def scene_of(tmp_path_factory):
 def _accuracy(scene, height: np.ndarray, like) -> tuple[float, float]:
     """NMAD (m) and completeness on the visible cells of the truth grid,
     without a 2 % frame (the views' footprints miss the grid's corners)."""
-    truth = _reference_on_grid(scene.truth_dsm, like).values
-    vis = (_reference_on_grid(scene.visible_mask, like, resampling="nearest").values > 0.5) & np.isfinite(truth)
+    truth = reference_on_grid(scene.truth_dsm, like).values
+    vis = (reference_on_grid(scene.visible_mask, like, resampling="nearest").values > 0.5) & np.isfinite(truth)
     m = int(0.02 * vis.shape[0]) + 1
     frame = np.zeros_like(vis)
     frame[m:-m, m:-m] = True
@@ -86,7 +87,7 @@ def test_dsm_is_bit_identical_in_every_chunking(scene_of, levels, views, given_r
     scene = scene_of(views)
     results = {}
     for chunk in CHUNKS:
-        grid = GroundGrid.like(scene.truth_dsm, chunk=chunk)
+        grid = grid_like(scene.truth_dsm, chunk=chunk)
         params = DSMParams(
             chunk=chunk, levels=levels, height_range=tuple(scene.height_range) if given_range else None
         )
@@ -139,7 +140,7 @@ def test_coarse_level_smaller_than_the_speckle_filter(scene_of):
     same happens to any grid under 400 cells with 3 levels (the
     ``L3-2views`` case above)."""
     scene = scene_of(2)
-    grid = GroundGrid.like(scene.truth_dsm, chunk=192).subgrid(96, 288, 96, 288)
+    grid = grid_like(scene.truth_dsm, chunk=192).subgrid(96, 288, 96, 288)
     height, _, ds, _ = _dsm(scene.views, grid, DSMParams(chunk=192, levels=2, height_range=tuple(scene.height_range)))
     assert ds.attrs["levels"] == 2
     assert np.isfinite(height).mean() > 0.8
@@ -157,7 +158,7 @@ def test_s2p_pair_is_bit_identical_in_chunks_of_128_and_512(shared_data):
     ref_path = shared_data("s2p_pair", "expected_output", "pair", "dsm.tif")
     out = {}
     for chunk in (128, 512):
-        full = GroundGrid.like(ref_path, chunk=chunk)
+        full = grid_like(ref_path, chunk=chunk)
         assert full.shape == (739, 721)
         grid = full.subgrid(176, 560, 168, 552)
         height, _, _, report = _dsm(imgs, grid, DSMParams(chunk=chunk))
@@ -200,7 +201,7 @@ def test_tall_tower_roof_with_default_parameters(tower_scene):
     (height range from tie points): on the roof interior (the truth window
     eroded by 2 cells) the DSM median is within 1 m of the roof height and
     at least 90 % of the cells have a height (no hole)."""
-    grid = GroundGrid.like(tower_scene.truth_dsm, chunk=SIZE)
+    grid = grid_like(tower_scene.truth_dsm, chunk=SIZE)
     height, _, _, report = _dsm(tower_scene.views, grid, DSMParams(chunk=SIZE))
     _check_roof(tower_scene, height, report)
 
@@ -211,7 +212,7 @@ def test_tall_tower_roof_through_a_three_level_pyramid(tower_scene):
     than a speckle of the finest level) must keep it, and the finer levels
     must follow it up. Measured: median +0.04 m, roof-interior completeness
     0.838 (the pyramid's band blurs the roof edges; 1.0 with one level)."""
-    grid = GroundGrid.like(tower_scene.truth_dsm, chunk=100)
+    grid = grid_like(tower_scene.truth_dsm, chunk=100)
     height, _, _, report = _dsm(tower_scene.views, grid, DSMParams(chunk=100, levels=3))
     _check_roof(tower_scene, height, report, min_completeness=0.82)
 
@@ -219,7 +220,7 @@ def test_tall_tower_roof_through_a_three_level_pyramid(tower_scene):
 def test_tall_tower_roof_with_a_covering_height_range(tower_scene):
     """The same tower when the search range is given and covers the roof
     (the scene's guaranteed range): the matcher itself finds the roof."""
-    grid = GroundGrid.like(tower_scene.truth_dsm, chunk=SIZE)
+    grid = grid_like(tower_scene.truth_dsm, chunk=SIZE)
     lo, hi = tower_scene.height_range
     assert lo < tower_scene.tower.roof_height < hi
     height, _, _, report = _dsm(tower_scene.views, grid, DSMParams(chunk=SIZE, height_range=(lo, hi)))

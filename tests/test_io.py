@@ -24,7 +24,8 @@ from tests.conftest import require_shared
 from tiledsm.errors import GridError, InputFileError, RPCError, TiledsmError, UnsupportedFormatError
 from tiledsm.geometry import RPC
 from tiledsm.geometry.grid import GroundGrid
-from tiledsm.geometry.rpc_io import read_rpc
+from tiledsm.io.grids import grid_like
+from tiledsm.io.cameras import read_rpc
 from tiledsm.io import (
     atomic_path,
     create_store,
@@ -178,7 +179,7 @@ def test_write_zarr_round_trip_crs_transform_values_attrs(tmp_path):
     np.testing.assert_array_equal(back.values, da.values)  # NaNs at the same places
     assert back.attrs == da.attrs
     assert back.chunks == g.chunks
-    assert GroundGrid.like(back) == g
+    assert grid_like(back) == g
     assert scene_rpc(back) == _s2p_rpc()
 
 

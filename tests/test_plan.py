@@ -121,9 +121,9 @@ def write_polygon(path: Path, crs: str, x0: float, y0: float, side: float) -> Pa
 
 
 def truth_grid(scene):
-    from tiledsm.geometry.grid import GroundGrid
+    from tiledsm.io.grids import grid_like
 
-    return GroundGrid.like(scene.truth_dsm)
+    return grid_like(scene.truth_dsm)
 
 
 # ------------------------------------------------------------------ dry run
@@ -509,7 +509,7 @@ EMITTERS = {
     "tiledsm/plan/stages.py:plan_compare": ("compare",),
     "tiledsm/plan/imagery.py:plan_ortho": ("ortho",),
     "tiledsm/plan/imagery.py:plan_orient": ("orient",),
-    "tiledsm/provenance.py:_refuse_or_take_over": ("dsm", "run", "compare"),
+    "tiledsm/io/lock.py:_refuse_or_take_over": ("dsm", "run", "compare", "ortho", "orient"),
     "tiledsm/plan/core.py:check_workers": ("dsm", "run", "compare", "sr"),
     "tiledsm/plan/core.py:FieldNames": ("dsm",),
 }
@@ -584,7 +584,7 @@ def test_plan_levels_match_the_built_graph(scene):
     """The plan's level sizes are the lazy DSM's own: as many matching tasks
     per level as the graph's ``match-L<level>`` layer holds."""
     from tiledsm.plan import plan_recipe
-    from tiledsm.recipes import DSMRecipe
+    from tiledsm.workflows.dsm import DSMRecipe
 
     for chunk, levels in ((64, 2), (128, 2), (256, 1), (128, 3)):
         r = DSMRecipe.model_validate({"pipeline": "dsm", "input": {"images": [str(v) for v in scene.views]},
@@ -605,7 +605,7 @@ def test_plan_task_sizes_and_candidates(scene):
     """Largest task = chunk plus halo (clipped at the grid's edges);
     candidates: the whole range at the coarsest level, the band (25) below."""
     from tiledsm.plan import plan_recipe
-    from tiledsm.recipes import DSMRecipe
+    from tiledsm.workflows.dsm import DSMRecipe
 
     r = DSMRecipe.model_validate({"pipeline": "dsm", "input": {"images": [str(v) for v in scene.views]},
                                   "grid": {"like": str(scene.truth_dsm), "chunk": 90},

@@ -19,11 +19,10 @@ import numpy as np
 import pytest
 
 from tiledsm.errors import FingerprintMismatchError, InputFileError, OutputLockedError, TiledsmError
+from tiledsm.io.lock import LOCK_NAME, OutputLock
 from tiledsm.provenance import (
     FORMAT,
-    LOCK_NAME,
     SAMPLE_BYTES,
-    OutputLock,
     _sample_offsets,
     check_resume,
     differences,
@@ -274,7 +273,7 @@ def test_lock_of_another_host_is_respected(tmp_path):
 
 _HOLD = """
 import sys, time
-from tiledsm.provenance import OutputLock
+from tiledsm.io.lock import OutputLock
 OutputLock(sys.argv[1]).acquire()
 print("locked", flush=True)
 time.sleep(60)

@@ -6,7 +6,8 @@ import pytest
 import yaml
 
 from tiledsm.errors import RecipeError
-from tiledsm.recipes import dump_resolved, load_recipe
+from tiledsm.pipelines import load_recipe
+from tiledsm.recipes import dump_resolved
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 

@@ -1,10 +1,15 @@
-"""Recipes: YAML files that describe a whole run, validated by a schema.
+"""Recipe parts shared by every pipeline: YAML files that describe a whole
+run, validated by a schema.
 
-A recipe names its ``pipeline`` (a registry key, see
-:mod:`tiledsm.pipelines`), its inputs, the stage parameters, the ground
-grid, the cluster and the outputs. Unknown or mistyped fields are errors
-that name the field path. The resolved recipe (every default filled in) is
-written next to the outputs as ``recipe.resolved.yaml``.
+A recipe names its ``pipeline`` (a key of :data:`tiledsm.pipelines.PIPELINES`,
+where each pipeline's own recipe model lives beside its runner), its
+inputs, the stage parameters, the ground grid, the cluster and the
+outputs. This module holds the parts they share (:class:`StrictModel`,
+inputs, grid, matching, cluster, output), reading a recipe file
+(:func:`read_recipe`) and writing the resolved one (:func:`dump_resolved`).
+Unknown or mistyped fields are errors that name the field path. The
+resolved recipe (every default filled in) is written next to the outputs
+as ``recipe.resolved.yaml``.
 """
 
 from __future__ import annotations
@@ -17,17 +22,20 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from tiledsm.errors import RecipeError
 
-__all__ = ["Recipe", "load_recipe", "dump_resolved"]
+__all__ = [
+    "StrictModel", "SynthInput", "InputSpec", "GridSpec", "MatchSpec", "JobQueueSpec", "ClusterSpec", "OutputSpec",
+    "grid_from_spec", "dsm_params", "load_cluster", "read_recipe", "format_errors", "dump_resolved",
+]
 
 
-class _Strict(BaseModel):
+class StrictModel(BaseModel):
+    """Base of every recipe model: unknown fields are errors, values frozen."""
+
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
-from tiledsm.orient.spec import OrientSpec  # noqa: E402  (derives from _Strict above)
 
-
-class SynthInput(_Strict):
+class SynthInput(StrictModel):
     """A synthetic scene made by :mod:`tiledsm.synth` (known truth)."""
 
     size: int = Field(512, ge=64, description="image side, pixels")
@@ -38,7 +46,7 @@ class SynthInput(_Strict):
     event: bool = False
 
 
-class InputSpec(_Strict):
+class InputSpec(StrictModel):
     """Either a synthetic scene (``synth``) or images with RPCs (``images``,
     cameras in their tags, a sidecar, or ``rpcs``)."""
 
@@ -56,7 +64,7 @@ class InputSpec(_Strict):
         return self
 
 
-class GridSpec(_Strict):
+class GridSpec(StrictModel):
     """Output ground grid; everything optional (derived from the views)."""
 
     like: Optional[str] = Field(None, description="align to this raster's grid (CRS, transform, shape)")
@@ -74,7 +82,7 @@ class GridSpec(_Strict):
         return self
 
 
-class MatchSpec(_Strict):
+class MatchSpec(StrictModel):
     """Dense matching parameters (see :class:`tiledsm.match.sgvll.SGVLLParams`)."""
 
     levels: Optional[int] = Field(None, ge=1, le=6, description="pyramid levels; default: from the height range")
@@ -114,9 +122,10 @@ def grid_from_spec(grid: GridSpec):
     derives it from the views (then ``crs``/``resolution`` go through
     :func:`dsm_params`)."""
     from tiledsm.geometry.grid import GroundGrid
+    from tiledsm.io.grids import grid_like
 
     if grid.like:
-        return GroundGrid.like(grid.like, chunk=grid.chunk)
+        return grid_like(grid.like, chunk=grid.chunk)
     if grid.bounds:
         return GroundGrid.from_bounds(grid.crs, grid.bounds, grid.resolution, chunk=grid.chunk)
     return None
@@ -140,7 +149,7 @@ def dsm_params(grid: GridSpec, match: MatchSpec, *, resolution: float | None = N
     )
 
 
-class JobQueueSpec(_Strict):
+class JobQueueSpec(StrictModel):
     """Resources of one batch job (see :class:`tiledsm.cluster.JobQueueConfig`)."""
 
     cores: int = Field(1, ge=1, description="cores per job: 'processes' workers (default: one per core) of cores/processes threads")
@@ -157,7 +166,7 @@ class JobQueueSpec(_Strict):
     python: Optional[str] = None
 
 
-class ClusterSpec(_Strict):
+class ClusterSpec(StrictModel):
     """Where the run computes: ``kind: local`` (default: ``workers``
     single-threaded processes), ``kind: address`` (an existing scheduler at
     ``address``), or ``kind: slurm|pbs|sge`` (workers as batch jobs with the
@@ -219,103 +228,21 @@ def load_cluster(path: str | Path) -> ClusterSpec:
     try:
         return ClusterSpec.model_validate(data)
     except ValidationError as exc:
-        raise RecipeError(_format_errors(path, exc).replace("invalid recipe", "invalid cluster file")) from None
+        raise RecipeError(format_errors(path, exc).replace("invalid recipe", "invalid cluster file")) from None
 
 
-class OutputSpec(_Strict):
+class OutputSpec(StrictModel):
     cog: bool = True
     quicklook: bool = True
     geoid: Optional[str] = Field(None, description="geoid grid (.gtx): write heights above the geoid")
 
 
-class DSMRecipe(_Strict):
-    """``pipeline: dsm`` — views (or a synthetic scene) to a DSM with a report."""
-
-    pipeline: Literal["dsm"]
-    name: str = "dsm"
-    input: InputSpec
-    grid: GridSpec = GridSpec()
-    match: MatchSpec = MatchSpec()
-    cluster: ClusterSpec = ClusterSpec()
-    output: OutputSpec = OutputSpec()
-    orient: Optional[OrientSpec] = Field(None, description="orient the images first (GCPs, reference DEM); the DSM uses the corrected RPCs")
-
-
-class TrainSRRecipe(_Strict):
-    """``pipeline: train_sr`` — train a super-resolution network; ``train``
-    holds the fields of :class:`tiledsm.sr.train.TrainConfig`."""
-
-    pipeline: Literal["train_sr"]
-    name: str = "train_sr"
-    train: dict[str, Any]
-
-    @field_validator("train")
-    @classmethod
-    def _valid_config(cls, value: dict[str, Any]) -> dict[str, Any]:
-        import dataclasses
-
-        from tiledsm.sr.train import TrainConfig
-
-        known = {f.name for f in dataclasses.fields(TrainConfig)}
-        unknown = sorted(set(value) - known)
-        if unknown:
-            raise ValueError(f"unknown field(s) {unknown}; known: {sorted(known)}")
-        return value
-
-
-Recipe = DSMRecipe
-_PIPELINES: dict[str, type[BaseModel]] = {"dsm": DSMRecipe, "train_sr": TrainSRRecipe}
-
-
-def register_recipe(name: str, model: type[BaseModel]) -> None:
-    """Add a pipeline's schema to the registry (duplicates refused)."""
-    if name in _PIPELINES:
-        raise ValueError(f"recipe pipeline {name!r} is already registered")
-    _PIPELINES[name] = model
-
-
-def _format_errors(path: Path, exc: ValidationError) -> str:
+def format_errors(path: Path, exc: ValidationError) -> str:
     parts = []
     for err in exc.errors():
         loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
         parts.append(f"{loc}: {err['msg']}")
     return f"{path}: invalid recipe: " + "; ".join(parts)
-
-
-def load_recipe(path: str | Path, overrides: dict[str, Any] | None = None) -> BaseModel:
-    """Read and validate a recipe file.
-
-    Relative input paths are resolved against the recipe's folder.
-
-    Raises
-    ------
-    RecipeError
-        Unreadable YAML, unknown pipeline, or a field that fails the schema
-        (the message lists each field path and what was expected).
-    """
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise RecipeError(f"{path}: cannot read recipe ({exc.strerror})") from exc
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise RecipeError(f"{path}: not valid YAML ({exc})") from exc
-    if not isinstance(data, dict):
-        raise RecipeError(f"{path}: a recipe is a mapping of fields, got {type(data).__name__}")
-    for key, value in (overrides or {}).items():
-        data[key] = value
-    import tiledsm.pipelines  # noqa: F401  (registers the workflows' schemas)
-
-    name = data.get("pipeline")
-    if name not in _PIPELINES:
-        raise RecipeError(f"{path}: pipeline: expected one of {sorted(_PIPELINES)}, got {name!r}")
-    data = _resolve_paths(data, path.parent)
-    try:
-        return _PIPELINES[name].model_validate(data)
-    except ValidationError as exc:
-        raise RecipeError(_format_errors(path, exc)) from None
 
 
 _PATH_KEYS = {"images", "rpcs", "reference", "like", "geoid", "stable_mask", "pre", "post", "dem", "truth_dh", "truth_mask",
@@ -340,3 +267,29 @@ def dump_resolved(recipe: BaseModel, path: str | Path) -> None:
     text = yaml.safe_dump(recipe.model_dump(mode="json"), sort_keys=False)
     with atomic_path(Path(path)) as tmp:
         Path(tmp).write_text(text)
+
+
+def read_recipe(path: str | Path, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The fields of a recipe file, ``overrides`` applied, relative input
+    paths resolved against the recipe's folder (validation is the
+    pipeline's: :func:`tiledsm.pipelines.load_recipe`).
+
+    Raises
+    ------
+    RecipeError
+        Unreadable file, invalid YAML, or not a mapping.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise RecipeError(f"{path}: cannot read recipe ({exc.strerror})") from exc
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise RecipeError(f"{path}: not valid YAML ({exc})") from exc
+    if not isinstance(data, dict):
+        raise RecipeError(f"{path}: a recipe is a mapping of fields, got {type(data).__name__}")
+    for key, value in (overrides or {}).items():
+        data[key] = value
+    return _resolve_paths(data, path.parent)

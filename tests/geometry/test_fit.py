@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import require_shared
+from tiledsm.geometry.fit import with_affine
 from tiledsm.errors import RPCError
 from tiledsm.geometry import RPC, fit_rpc, fit_rpc_report
 
@@ -123,7 +124,7 @@ def test_affine_bias_folded_into_rpc(img01):
     a = (2.7, 3e-4, -2e-4)
     b = (-1.4, 1.5e-4, 4e-4)
     h = (2000.0, 2600.0)
-    fixed = rpc.with_affine(a, b, image_shape=shape, h_range=h)
+    fixed = with_affine(rpc, a, b, image_shape=shape, h_range=h)
     lon, lat, hh = _random_points(rpc, shape, h, seed=1)
     r, c = rpc.project(lon, lat, hh)
     got_l, got_s = fixed.project(lon, lat, hh)

@@ -7,7 +7,7 @@ import pytest
 
 from tests.conftest import require_shared
 from tiledsm.errors import InputFileError
-from tiledsm.geometry.geoid import ellipsoid_to_geoid, geoid_height, geoid_to_ellipsoid
+from tiledsm.io.geoid import ellipsoid_to_geoid, geoid_height, geoid_to_ellipsoid
 
 
 @pytest.fixture(scope="module")

@@ -13,11 +13,13 @@ from pyproj.aoi import AreaOfInterest
 from pyproj.database import query_utm_crs_info
 
 from tests.conftest import require_shared
+from tiledsm.io.grids import grid_array
 from tiledsm.errors import GridError, InputFileError
 from tiledsm.geometry import RPC
 from tiledsm.geometry.footprint import ground_polygon
 from tiledsm.geometry.footprint import grid_for_footprint
 from tiledsm.geometry.grid import GroundGrid, utm_crs
+from tiledsm.io.grids import grid_like
 
 
 def _grid() -> GroundGrid:
@@ -68,7 +70,7 @@ def test_subgrid_is_a_slice_of_the_parent():
 
 def test_empty_is_lazy_and_georeferenced():
     g = _grid()
-    da = g.empty()
+    da = grid_array(g)
     assert da.chunks == g.chunks
     assert da.rio.crs == CRS.from_epsg(32631)
     assert da.rio.transform() == g.transform
@@ -136,7 +138,7 @@ def test_utm_crs_edges():
 
 def test_like_real_raster_and_dataarray():
     path = require_shared("s2p_pair", "expected_output", "pair", "dsm.tif")
-    g = GroundGrid.like(path, chunk=128)
+    g = grid_like(path, chunk=128)
     with rasterio.open(path) as src:
         assert g.transform == src.transform
         assert g.shape == (src.height, src.width)
@@ -144,7 +146,7 @@ def test_like_real_raster_and_dataarray():
     import rioxarray
 
     da = rioxarray.open_rasterio(path, chunks={"x": 256, "y": 256}).squeeze("band", drop=True)
-    g2 = GroundGrid.like(da)
+    g2 = grid_like(da)
     assert g2.transform == g.transform and g2.shape == g.shape and g2.chunk == 256
     np.testing.assert_allclose(g2.x, da.x.values)
     np.testing.assert_allclose(g2.y, da.y.values)
@@ -152,10 +154,10 @@ def test_like_real_raster_and_dataarray():
 
 def test_like_errors():
     with pytest.raises(InputFileError, match="nonexistent.tif"):
-        GroundGrid.like("/nonexistent/nonexistent.tif")
+        grid_like("/nonexistent/nonexistent.tif")
     crop = require_shared("shareloc_phr_ventoux", "left_image.tif")
     with pytest.raises(GridError, match="no CRS"):
-        GroundGrid.like(crop)
+        grid_like(crop)
 
 
 def test_grid_for_footprint_covers_the_image_footprint():

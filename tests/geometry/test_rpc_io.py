@@ -14,7 +14,8 @@ from rasterio.transform import RPCTransformer
 
 from tests.conftest import SHARED_DATA, require_shared
 from tiledsm.errors import InputFileError, RPCError, UnsupportedFormatError
-from tiledsm.geometry import RPC, find_camera, read_rpc
+from tiledsm.geometry import RPC
+from tiledsm.io.cameras import find_camera, read_rpc
 
 RPCM = ["20191015_073816_ssc1d3_0011_basic_l1a_panchromatic_dn_RPC.TXT", "JAX_068_001_RGB.json",
         "rpc_IKONOS.txt", "rpc_PLANET_L1A.txt", "rpc_PLANET_L1B.txt", "rpc_PLEIADES.xml", "rpc_SPOT6.xml",
@@ -187,7 +188,7 @@ def test_missing_file():
 def test_unsupported_format():
     path = require_shared("rpc_models", "rpcm", "rpc_unsupported.xml")
     with pytest.raises(UnsupportedFormatError, match="rpc_unsupported.xml"):
-        RPC.from_file(path)
+        read_rpc(path)
 
 
 def test_text_without_rpc_keys(tmp_path):
@@ -266,7 +267,7 @@ def test_ventoux_left_right_offset_with_srtm_and_egm96():
     """Data README: with SRTM + EGM96 the predicted left->right offset is
     (drow -316, dcol +85) (NCC says -321, +80); with SRTM heights used as
     ellipsoidal heights it is off by tens of pixels."""
-    from tiledsm.geometry.geoid import geoid_to_ellipsoid
+    from tiledsm.io.geoid import geoid_to_ellipsoid
 
     d = require_shared("shareloc_phr_ventoux")
     left, _ = find_camera(d / "left_image.tif")
@@ -315,7 +316,7 @@ def _wv3_rpc():
 def _gdal_agrees(path: Path, rpc: RPC, n: int = 50) -> None:
     """rasterio reads back exactly ``rpc`` and its RPC transformer projects
     like :meth:`RPC.project` (1e-3 px: GDAL's own iteration tolerance)."""
-    from tiledsm.geometry import rpc_io
+    from tiledsm.io import cameras as rpc_io
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -334,7 +335,7 @@ def _gdal_agrees(path: Path, rpc: RPC, n: int = 50) -> None:
 
 
 def test_rpc_txt_written_is_read_by_gdal_and_by_us(tmp_path):
-    from tiledsm.geometry.rpc_io import rpc_txt_path, write_rpc_txt
+    from tiledsm.io.cameras import rpc_txt_path, write_rpc_txt
 
     rpc = _wv3_rpc().cropped(10.5, -3.25)
     img = _tiny_raster(tmp_path / "scene.tif")
@@ -348,7 +349,7 @@ def test_rpc_txt_written_is_read_by_gdal_and_by_us(tmp_path):
 
 
 def test_rpc_tags_written_on_an_open_geotiff(tmp_path):
-    from tiledsm.geometry.rpc_io import write_rpc_tags
+    from tiledsm.io.cameras import write_rpc_tags
 
     rpc = _wv3_rpc()
     img = _tiny_raster(tmp_path / "scene.tif")
@@ -360,7 +361,7 @@ def test_rpc_tags_written_on_an_open_geotiff(tmp_path):
 
 
 def test_rpc_tags_refuse_non_geotiff(tmp_path):
-    from tiledsm.geometry.rpc_io import write_rpc_tags
+    from tiledsm.io.cameras import write_rpc_tags
 
     p = tmp_path / "x.png"
     with warnings.catch_warnings():

@@ -138,7 +138,7 @@ def test_track_error_synthetic_pushbroom(tmp_path):
 def test_track_error_pleiades(shared_data):
     """... and of the real Pleiades RPCs of ``s2p_pair`` over 400 m of heights."""
     from tiledsm.geometry.grid import utm_crs
-    from tiledsm.geometry.rpc_io import find_camera
+    from tiledsm.io.cameras import find_camera
 
     pair = shared_data("s2p_pair", "input_pair")
     rpcs = [find_camera(pair / name, None)[0] for name in ("img_01.tif", "img_02.tif")]

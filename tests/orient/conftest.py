@@ -22,7 +22,7 @@ def cameras3():
 def scene2(tmp_path_factory):
     """A rendered 512-px 2-view scene with 1 px shifts injected into
     biased copies, and the true cameras."""
-    from tiledsm.geometry import find_camera
+    from tiledsm.io.cameras import find_camera
     from tiledsm.orient.simulate import biased_copies
     from tiledsm.synth import make_scene
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from orient_cases import BIASES, H_RANGE, SIZE, relative_error
 
+from tiledsm.geometry.fit import with_affine
 from tiledsm.orient.adjust import AdjustParams, adjust_block, intersect
 from tiledsm.orient.bias import get_model
 from tiledsm.orient.simulate import corner_points, ground_points, project_all, synthetic_block
@@ -19,7 +20,7 @@ def _corrected(biased, res, models):
     out = []
     for rpc, x, m in zip(biased, res.x, models):
         a, b = m.full(x)
-        out.append(rpc.with_affine(a, b, image_shape=(SIZE, SIZE), h_range=H_RANGE))
+        out.append(with_affine(rpc, a, b, image_shape=(SIZE, SIZE), h_range=H_RANGE))
     return out
 
 

@@ -13,7 +13,8 @@ import rasterio
 from orient_cases import write_gcp_files
 
 from tiledsm.cli import main
-from tiledsm.geometry import RPC, find_camera
+from tiledsm.geometry import RPC
+from tiledsm.io.cameras import find_camera
 from tiledsm.orient.simulate import ground_points
 
 

@@ -15,7 +15,7 @@ import rasterio
 from pydantic import ValidationError
 from pyproj import Transformer
 
-from tiledsm.geometry import find_camera
+from tiledsm.io.cameras import find_camera
 from tiledsm.orient.adjust import intersect
 from tiledsm.orient.simulate import project_all
 from tiledsm.orient.spec import OrientSpec, orient_for_recipe, polygon_exclusion
@@ -136,9 +136,8 @@ def test_deformation_joint_orientation(tmp_path):
 
     from tiledsm.orient.simulate import biased_copies
     from tiledsm.synth import make_scene
-    from tiledsm.workflows.deformation import (
-        DeformationOrientSpec, _orient_epochs, _write_geojson, event_exclusion_polygons,
-    )
+    from tiledsm.workflows.deformation import DeformationOrientSpec, _orient_epochs
+    from tiledsm.workflows.fault import event_exclusion_polygons, write_geojson
 
     scene = make_scene(tmp_path / "scene", size=256, views=2, seed=3, event=True, chunk=256, workers=1)
     ev = scene.event
@@ -147,7 +146,7 @@ def test_deformation_joint_orientation(tmp_path):
     h = (pre_true[0].height_off - pre_true[0].height_scale, pre_true[0].height_off + pre_true[0].height_scale)
     post_biased = biased_copies(ev["post_views"], post_true, BIASES[1:3], tmp_path / "biased", h)
     feats, _ = event_exclusion_polygons(ev["params"], scene.origin, scene.grid.width * scene.grid.resolution)
-    mask = _write_geojson(feats, scene.grid.crs, tmp_path / "stable_mask.geojson")
+    mask = write_geojson(feats, scene.grid.crs, tmp_path / "stable_mask.geojson")
     pre_in, post_in, rep = _orient_epochs(DeformationOrientSpec(), ([str(p) for p in scene.views], None),
                                           ([str(p) for p in post_biased], None), tmp_path / "run", str(mask), False)
     assert rep["joint"] and pre_in[1] is None and len(post_in[0]) == 2

@@ -7,7 +7,7 @@ import numpy as np
 import rasterio
 from pyproj import Transformer
 
-from tiledsm.geometry import find_camera
+from tiledsm.io.cameras import find_camera
 from tiledsm.orient.adjust import intersect
 from tiledsm.orient.tracks import TrackParams, read_window, tie_point_tracks
 

@@ -6,6 +6,7 @@ import pytest
 import xarray as xr
 from skimage.registration import phase_cross_correlation
 
+from tiledsm.io.grids import grid_array
 from tiledsm.errors import GridError, InvalidOptionError, NoOverlapError
 from tiledsm.geometry.frame import FrameCamera, rotation_nadir
 from tiledsm.geometry.grid import GroundGrid
@@ -86,7 +87,7 @@ def _frame_setup(flat=100.0):
     e, n = cam.localize_xyz(rows, cols, flat)
     image = texture(e, n).astype(np.float32)
     grid = GroundGrid(crs, e0 - 6.4, n0 + 6.4, 0.2, 64, 64, 32)
-    dsm = grid.empty(fill=flat).compute()
+    dsm = grid_array(grid, fill=flat).compute()
     return cam, image, grid, dsm, texture
 
 

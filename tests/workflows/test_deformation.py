@@ -12,9 +12,9 @@ import yaml
 
 from tiledsm.cluster import ClusterConfig
 from tiledsm.errors import NoOverlapError, RecipeError, TiledsmError
-from tiledsm.pipelines import run_recipe
-from tiledsm.recipes import load_recipe
-from tiledsm.workflows.deformation import Fault, event_exclusion_polygons, run_deformation, throw_across
+from tiledsm.pipelines import load_recipe, run_recipe
+from tiledsm.workflows.deformation import run_deformation
+from tiledsm.workflows.fault import Fault, event_exclusion_polygons, throw_across
 
 CLUSTER = ClusterConfig(workers=2, progress=False)
 

@@ -15,8 +15,7 @@ from skimage.metrics import peak_signal_noise_ratio
 
 from tiledsm.cluster import ClusterConfig
 from tiledsm.errors import RecipeError
-from tiledsm.pipelines import run_recipe
-from tiledsm.recipes import load_recipe
+from tiledsm.pipelines import load_recipe, run_recipe
 from tiledsm.synth.uav import UAVParams, make_uav_scene
 from tiledsm.workflows.ortho_sr import MISRSpec, Row, align_to, noisy_dsm, planned_rows
 

@@ -15,8 +15,8 @@ from tiledsm.cluster import ClusterConfig
 from tiledsm.errors import RecipeError
 from tiledsm.geometry import RPC
 from tiledsm.geometry.grid import GroundGrid
-from tiledsm.pipelines import run_recipe
-from tiledsm.recipes import load_recipe
+from tiledsm.io.grids import grid_like
+from tiledsm.pipelines import load_recipe, run_recipe
 from tiledsm.workflows.sr_dsm import METHODS, UPSCALE, lr_grid, upsample_dsm
 
 SYNC = ClusterConfig(scheduler="synchronous", progress=False)
@@ -132,7 +132,7 @@ def test_dsm_upscale_is_the_lr_dsm_interpolated(run):
     out, metrics = run
     lr = open_product(out / "lr" / "dsm.zarr")["height"].load()
     up = xr.open_dataarray(out / UPSCALE / "dsm.tif", engine="rasterio").squeeze("band", drop=True)
-    truth_grid = GroundGrid.like(out / "scene" / "truth_dsm.tif")
+    truth_grid = grid_like(out / "scene" / "truth_dsm.tif")
     assert float(abs(lr.x[1] - lr.x[0])) == pytest.approx(2 * truth_grid.resolution)
     assert up.shape == truth_grid.shape
     y, x = lr.y.values, lr.x.values

@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tiledsm.workflows.sr_dsm import (
-    _score_tables,
+from tiledsm.workflows.sr_dsm import _score_tables
+from tiledsm.workflows.sr_scores import (
     common_valid,
     compare_on_common,
     markdown_report,

@@ -53,7 +53,7 @@ def dsm_recipe(args: argparse.Namespace):
     from pydantic import ValidationError
 
     from tiledsm.errors import InvalidOptionError
-    from tiledsm.recipes import DSMRecipe
+    from tiledsm.workflows.dsm import DSMRecipe
 
     if len(args.images) < 2:
         raise InvalidOptionError(f"IMAGES: at least two images are needed, got {len(args.images)}")

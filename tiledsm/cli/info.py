@@ -35,7 +35,7 @@ def describe(path: str | Path, rpc: str | Path | None = None) -> dict:
     from pyproj import Geod
 
     from tiledsm.errors import InputFileError, RPCError
-    from tiledsm.geometry.rpc_io import find_camera
+    from tiledsm.io.cameras import find_camera
 
     path = Path(path)
     if not path.exists():

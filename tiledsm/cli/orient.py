@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
     from tiledsm.orient.stage import OrientParams, orient_images, write_orientation
     from tiledsm.orient.tracks import TrackParams
     from tiledsm.plan import plan_orient
-    from tiledsm.provenance import OutputLock
+    from tiledsm.io.lock import OutputLock
 
     cluster = cluster_config(args)
     plan = plan_orient(args.images, args.out, gcps=args.gcps, check_points=args.check_points, dem=args.dem,

@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
     from tiledsm.cli.run import cluster_config, print_warnings
     from tiledsm.ortho.stage import write_ortho_products
     from tiledsm.plan import plan_ortho
-    from tiledsm.provenance import OutputLock
+    from tiledsm.io.lock import OutputLock
 
     cluster = cluster_config(args)
     plan = plan_ortho(

@@ -121,7 +121,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tiledsm.plan import RECIPE_NAMES, check_workers
-    from tiledsm.recipes import load_recipe
+    from tiledsm.pipelines import load_recipe
 
     check_workers(args.workers, "--workers")
     recipe = load_recipe(args.recipe)

@@ -1,6 +1,8 @@
-"""Camera models and ground geometry (RPC, grids, footprints, geoid)."""
+"""Camera models and ground geometry (RPC, its fitting, grids, footprints):
+pure functions on arrays, no file and no dask graph (reading cameras and
+grids from files is :mod:`tiledsm.io`'s)."""
 
-from tiledsm.geometry.fit import FitReport, fit_rpc, fit_rpc_report
+from tiledsm.geometry.fit import FitReport, fit_rpc, fit_rpc_report, with_affine
 from tiledsm.geometry.footprint import (
     grid_for_footprint,
     ground_polygon,
@@ -9,21 +11,15 @@ from tiledsm.geometry.footprint import (
     overlap_polygon,
     polygon_area,
 )
-from tiledsm.geometry.geoid import ellipsoid_to_geoid, geoid_height, geoid_to_ellipsoid
 from tiledsm.geometry.grid import GroundGrid, utm_crs
 from tiledsm.geometry.rpc import RPC
-from tiledsm.geometry.rpc_io import find_camera, read_rpc
 
 __all__ = [
     "RPC",
     "FitReport",
     "fit_rpc",
     "fit_rpc_report",
-    "find_camera",
-    "read_rpc",
-    "geoid_height",
-    "geoid_to_ellipsoid",
-    "ellipsoid_to_geoid",
+    "with_affine",
     "GroundGrid",
     "utm_crs",
     "grid_for_footprint",

@@ -30,7 +30,7 @@ import numpy as np
 from tiledsm.errors import RPCError
 from tiledsm.geometry.rpc import RPC, rpc_terms
 
-__all__ = ["FitReport", "fit_rpc", "fit_rpc_report"]
+__all__ = ["FitReport", "fit_rpc", "fit_rpc_report", "with_affine"]
 
 ProjectFn = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -253,3 +253,90 @@ def fit_rpc(
             f"fit_rpc ({source}): held-out error {rep.check_max_px:.4g} px exceeds max_error={max_error} px"
         )
     return rpc
+
+
+def with_affine(
+    rpc: RPC,
+    a,
+    b,
+    *,
+    image_shape: tuple[int, int] | None = None,
+    h_range: tuple[float, float] | None = None,
+    max_error: float = 0.01,
+) -> RPC:
+    """Fold an image-space affine bias correction into a new RPC.
+
+    The bias-compensated RPC model (Grodecki & Dial 2003, PE&RS 69(1)
+    59-68; Fraser & Hanley 2003, PE&RS 69(1) 53-57), with ``(l, s)`` the
+    *measured* line/sample of a ground point in GDAL's pixel convention
+    (``row``/``col`` as returned by :meth:`RPC.project`) and ``(r, c)``
+    ``rpc``'s projection of it::
+
+        l + A0 + A1 * l + A2 * s = r
+        s + B0 + B1 * l + B2 * s = c
+
+    The returned RPC projects ground points to the measured ``(l, s)``
+    (the 2x2 system solved for them): it is ``rpc`` with its bias
+    removed and needs no extra terms.
+
+    When ``A2 == B1 == 0`` (shift + per-axis scale) the result is exact
+    (only offsets and scales change). Otherwise the corrected projection
+    is refitted with :func:`fit_rpc` over the ground
+    seen by the image (corners localised at ``h_range``) and checked on
+    held-out points: an :class:`~tiledsm.errors.RPCError` is raised if
+    the fit is worse than ``max_error`` pixels.
+
+    Parameters
+    ----------
+    a, b : sequence of 3 floats
+        ``(A0, A1, A2)`` and ``(B0, B1, B2)``; A0/B0 in pixels, the
+        others dimensionless.
+    image_shape : (rows, cols), optional
+        Image extent (measured pixel frame) for the refit; default: this
+        RPC's :meth:`image_window` mapped to the measured frame.
+    h_range : (float, float), optional
+        Heights (m, ellipsoidal) for the refit; default
+        ``height_off ± height_scale``.
+    max_error : float
+        Held-out tolerance of the refit, pixels.
+    """
+    a0, a1, a2 = (float(v) for v in a)
+    b0, b1, b2 = (float(v) for v in b)
+    det = (1.0 + a1) * (1.0 + b2) - a2 * b1
+    if not (np.isfinite(det) and abs(det) > 1e-6):
+        raise RPCError(f"with_affine: singular correction (A={a}, B={b})")
+    src = f"{rpc.source} + affine" if rpc.source else "affine-corrected"
+    if a2 == 0.0 and b1 == 0.0:
+        ka, kb = 1.0 + a1, 1.0 + b2
+        return rpc.replace(
+            line_off=(rpc.line_off + 0.5 - a0) / ka - 0.5, line_scale=rpc.line_scale / ka,
+            samp_off=(rpc.samp_off + 0.5 - b0) / kb - 0.5, samp_scale=rpc.samp_scale / kb,
+            source=src,
+        )
+    def measured(r, c):
+        """(l, s) of RPC pixel (r, c): the model's 2x2 system solved."""
+        dr, dc = r - a0, c - b0
+        return ((1.0 + b2) * dr - a2 * dc) / det, (-b1 * dr + (1.0 + a1) * dc) / det
+
+    def forward(l, s):
+        return l + a0 + a1 * l + a2 * s, s + b0 + b1 * l + b2 * s
+
+    if image_shape is not None:
+        window = (0.0, float(image_shape[0]), 0.0, float(image_shape[1]))
+    else:
+        r0, r1, c0, c1 = rpc.image_window()
+        ml, ms = measured(np.array([r0, r0, r1, r1]), np.array([c0, c1, c0, c1]))
+        window = (ml.min(), ml.max(), ms.min(), ms.max())
+    if h_range is None:
+        h_range = (rpc.height_off - abs(rpc.height_scale), rpc.height_off + abs(rpc.height_scale))
+    # the measured window's corners in this RPC's frame, for the ground box
+    w0, w1, v0, v1 = window
+    fr, fc = forward(np.array([w0, w0, w1, w1]), np.array([v0, v1, v0, v1]))
+    lon_r, lat_r = rpc.ground_box((fr.min(), fr.max(), fc.min(), fc.max()), h_range)
+
+    def corrected(lon, lat, h):
+        return measured(*rpc.project(lon, lat, h))
+
+    return fit_rpc(
+        corrected, lon_r, lat_r, tuple(h_range), image_window=window, max_error=max_error, source=src,
+    )

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Iterator, Sequence
 
 import numpy as np
@@ -26,7 +25,7 @@ from affine import Affine
 from pyproj import CRS
 from pyproj.exceptions import CRSError
 
-from tiledsm.errors import GridError, InputFileError
+from tiledsm.errors import GridError
 
 __all__ = ["GroundGrid", "utm_crs", "check_height_range", "DEFAULT_CHUNK"]
 
@@ -178,17 +177,6 @@ class GroundGrid:
         """``{"y": ..., "x": ...}`` cell-centre coordinates for xarray."""
         return {"y": self.y, "x": self.x}
 
-    def empty(self, dtype: str = "float32", fill: float = np.nan, name: str | None = None):
-        """A lazy dask-backed ``xarray.DataArray`` on this grid filled with
-        ``fill``, with CRS and transform written (rioxarray)."""
-        import dask.array as dsa
-        import rioxarray  # noqa: F401  (registers .rio)
-        import xarray as xr
-
-        data = dsa.full(self.shape, fill, dtype=dtype, chunks=self.chunks)
-        da = xr.DataArray(data, dims=("y", "x"), coords=self.coords(), name=name)
-        return da.rio.write_crs(self.crs).rio.write_transform(self.transform)
-
     # ------------------------------------------------------- constructors
     @classmethod
     def from_bounds(
@@ -231,52 +219,29 @@ class GroundGrid:
         return cls(crs, c0 * res, r1 * res, res, max(c1 - c0, 1), max(r1 - r0, 1), chunk)
 
     @classmethod
-    def like(cls, ref, chunk: int | None = None) -> "GroundGrid":
-        """The grid of an existing raster (same CRS, transform and shape).
-
-        Parameters
-        ----------
-        ref : str, Path or xarray.DataArray
-            A georeferenced raster file (anything rasterio opens) or a
-            DataArray with rioxarray CRS and transform.
-        chunk : int, optional
-            Chunk edge; default: the DataArray's first dask chunk along
-            ``y`` when it has one, else :data:`DEFAULT_CHUNK`.
+    def from_transform(cls, crs, transform, shape: tuple[int, int], chunk: int | None = None,
+                       name: str = "grid") -> "GroundGrid":
+        """The grid of a raster given by its CRS, affine geotransform
+        (GDAL order, top-left corner of the top-left cell) and ``(rows,
+        cols)`` shape; ``name`` names the raster in errors. Reading that
+        from a file or a DataArray is :func:`tiledsm.io.grids.grid_like`'s.
 
         Raises
         ------
-        InputFileError
-            The file cannot be opened.
         GridError
             No CRS, a rotated or non-square pixel grid, or a south-up grid.
         """
-        if isinstance(ref, (str, Path)):
-            import rasterio
-
-            name = str(ref)
-            try:
-                with rasterio.open(ref) as src:
-                    crs, transform, shape = src.crs, src.transform, (src.height, src.width)
-            except rasterio.errors.RasterioIOError as exc:
-                raise InputFileError(f"{name}: cannot open as a raster ({exc})") from exc
-        else:
-            import rioxarray  # noqa: F401
-
-            name = str(getattr(ref, "name", None) or "DataArray")
-            crs, transform, shape = ref.rio.crs, ref.rio.transform(), ref.rio.shape
-            if chunk is None and getattr(ref, "chunks", None):
-                chunk = int(ref.chunks[ref.get_axis_num("y")][0])
         if crs is None:
             raise GridError(f"{name}: has no CRS; cannot align a ground grid to it")
-        a, b, c, d, e, f = transform[:6]
+        a, b, c, d, e, f = tuple(transform)[:6]
         if b != 0 or d != 0:
-            raise GridError(f"{name}: rotated geotransform {tuple(transform[:6])} is not supported")
+            raise GridError(f"{name}: rotated geotransform {tuple(transform)[:6]} is not supported")
         if e >= 0:
             raise GridError(f"{name}: geotransform is not north-up (e = {e})")
         if not math.isclose(a, -e, rel_tol=1e-9):
             raise GridError(f"{name}: non-square cells ({a} x {-e}) are not supported")
         crs_str = crs.to_string() if hasattr(crs, "to_string") else str(crs)
-        return cls(crs_str, c, f, a, shape[1], shape[0], chunk or DEFAULT_CHUNK)
+        return cls(crs_str, c, f, a, int(shape[1]), int(shape[0]), chunk or DEFAULT_CHUNK)
 
 
 def utm_crs(lon: float, lat: float) -> str:

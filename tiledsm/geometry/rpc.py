@@ -134,14 +134,6 @@ class RPC:
 
     # ------------------------------------------------------------------ GDAL
     @classmethod
-    def from_file(cls, path) -> "RPC":
-        """Read an RPC from any supported file (see
-        :func:`tiledsm.geometry.rpc_io.read_rpc`)."""
-        from tiledsm.geometry.rpc_io import read_rpc  # local: rpc_io imports this module
-
-        return read_rpc(path)
-
-    @classmethod
     def from_gdal(cls, md: Mapping[str, object], source: str = "") -> "RPC":
         """Build from GDAL's RPC metadata domain (``LINE_OFF``, ...,
         ``SAMP_DEN_COEFF``; coefficient values as space-separated strings or
@@ -325,91 +317,3 @@ class RPC:
         cols = np.concatenate([np.full(n, c0), c0 + (c1 - c0) * t, np.full(n, c1), c0 + (c1 - c0) * t])
         lon, lat = self.localize(rows[:, None], cols[:, None], np.asarray(h_range, float)[None, :])
         return (float(lon.min()), float(lon.max())), (float(lat.min()), float(lat.max()))
-
-    def with_affine(
-        self,
-        a,
-        b,
-        *,
-        image_shape: tuple[int, int] | None = None,
-        h_range: tuple[float, float] | None = None,
-        max_error: float = 0.01,
-    ) -> "RPC":
-        """Fold an image-space affine bias correction into a new RPC.
-
-        The bias-compensated RPC model (Grodecki & Dial 2003, PE&RS 69(1)
-        59-68; Fraser & Hanley 2003, PE&RS 69(1) 53-57), with ``(l, s)`` the
-        *measured* line/sample of a ground point in GDAL's pixel convention
-        (``row``/``col`` as returned by :meth:`project`) and ``(r, c)`` this
-        RPC's projection of it::
-
-            l + A0 + A1 * l + A2 * s = r
-            s + B0 + B1 * l + B2 * s = c
-
-        The returned RPC projects ground points to the measured ``(l, s)``
-        (the 2x2 system solved for them): it is this camera with its bias
-        removed and needs no extra terms.
-
-        When ``A2 == B1 == 0`` (shift + per-axis scale) the result is exact
-        (only offsets and scales change). Otherwise the corrected projection
-        is refitted with :func:`tiledsm.geometry.fit.fit_rpc` over the ground
-        seen by the image (corners localised at ``h_range``) and checked on
-        held-out points: an :class:`~tiledsm.errors.RPCError` is raised if
-        the fit is worse than ``max_error`` pixels.
-
-        Parameters
-        ----------
-        a, b : sequence of 3 floats
-            ``(A0, A1, A2)`` and ``(B0, B1, B2)``; A0/B0 in pixels, the
-            others dimensionless.
-        image_shape : (rows, cols), optional
-            Image extent (measured pixel frame) for the refit; default: this
-            RPC's :meth:`image_window` mapped to the measured frame.
-        h_range : (float, float), optional
-            Heights (m, ellipsoidal) for the refit; default
-            ``height_off ± height_scale``.
-        max_error : float
-            Held-out tolerance of the refit, pixels.
-        """
-        a0, a1, a2 = (float(v) for v in a)
-        b0, b1, b2 = (float(v) for v in b)
-        det = (1.0 + a1) * (1.0 + b2) - a2 * b1
-        if not (np.isfinite(det) and abs(det) > 1e-6):
-            raise RPCError(f"RPC.with_affine: singular correction (A={a}, B={b})")
-        src = f"{self.source} + affine" if self.source else "affine-corrected"
-        if a2 == 0.0 and b1 == 0.0:
-            ka, kb = 1.0 + a1, 1.0 + b2
-            return self.replace(
-                line_off=(self.line_off + 0.5 - a0) / ka - 0.5, line_scale=self.line_scale / ka,
-                samp_off=(self.samp_off + 0.5 - b0) / kb - 0.5, samp_scale=self.samp_scale / kb,
-                source=src,
-            )
-        from tiledsm.geometry.fit import fit_rpc  # local: fit imports this module
-
-        def measured(r, c):
-            """(l, s) of RPC pixel (r, c): the model's 2x2 system solved."""
-            dr, dc = r - a0, c - b0
-            return ((1.0 + b2) * dr - a2 * dc) / det, (-b1 * dr + (1.0 + a1) * dc) / det
-
-        def forward(l, s):
-            return l + a0 + a1 * l + a2 * s, s + b0 + b1 * l + b2 * s
-
-        if image_shape is not None:
-            window = (0.0, float(image_shape[0]), 0.0, float(image_shape[1]))
-        else:
-            r0, r1, c0, c1 = self.image_window()
-            ml, ms = measured(np.array([r0, r0, r1, r1]), np.array([c0, c1, c0, c1]))
-            window = (ml.min(), ml.max(), ms.min(), ms.max())
-        if h_range is None:
-            h_range = (self.height_off - abs(self.height_scale), self.height_off + abs(self.height_scale))
-        # the measured window's corners in this RPC's frame, for the ground box
-        w0, w1, v0, v1 = window
-        fr, fc = forward(np.array([w0, w0, w1, w1]), np.array([v0, v1, v0, v1]))
-        lon_r, lat_r = self.ground_box((fr.min(), fr.max(), fc.min(), fc.max()), h_range)
-
-        def corrected(lon, lat, h):
-            return measured(*self.project(lon, lat, h))
-
-        return fit_rpc(
-            corrected, lon_r, lat_r, tuple(h_range), image_window=window, max_error=max_error, source=src,
-        )

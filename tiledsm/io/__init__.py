@@ -35,17 +35,24 @@ Conventions
   pending and it is recomputed on resume. xarray ignores the ``_progress``
   sub-group when reading the store.
 
-The package: :mod:`.atomic` (atomic writes), :mod:`.scenes` (images and
+The package: :mod:`.atomic` (atomic writes), :mod:`.cameras` (RPC files read
+and written, camera discovery), :mod:`.geoid` (geoid grids), :mod:`.grids`
+(the ground grid of a raster), :mod:`.scenes` (images and
 their cameras), :mod:`.stores` (zarr products and resumable stores) and
 :mod:`.export` (GeoTIFF/COG).
 """
 
+from tiledsm.io.cameras import find_camera, read_rpc
+from tiledsm.io.grids import grid_like
 from tiledsm.io.scenes import open_scene, scene_rpc
 from tiledsm.io.atomic import atomic_path, withdraw
 from tiledsm.io.stores import write_zarr, open_product, ChunkStore, create_store, write_blocks, write_resumable
 from tiledsm.io.export import write_cog, write_geotiff_with_rpc
 
 __all__ = [
+    "find_camera",
+    "read_rpc",
+    "grid_like",
     "open_scene",
     "scene_rpc",
     "atomic_path",

@@ -18,10 +18,10 @@ from tiledsm.geometry.rpc import RPC
 
 # --------------------------------------------------------------------------- scenes
 def _find_camera(image_path: Path, rpc) -> tuple[RPC, str]:
-    """Camera of an image: :func:`tiledsm.geometry.rpc_io.find_camera`."""
+    """Camera of an image: :func:`tiledsm.io.cameras.find_camera`."""
     if isinstance(rpc, RPC):
         return rpc, rpc.source or "RPC object given"
-    from tiledsm.geometry.rpc_io import find_camera  # lazy: keeps tiledsm.io import light
+    from tiledsm.io.cameras import find_camera  # lazy: keeps tiledsm.io import light
 
     return find_camera(image_path, rpc)
 
@@ -45,7 +45,7 @@ def open_scene(
     rpc : RPC, path-like or None
         Explicit camera: an :class:`RPC` or a file holding one. Default:
         from the image itself or a same-stem sidecar (``.geom``, ``.RPB``,
-        ``_RPC.TXT``, ``.XML``), see ``tiledsm.geometry.rpc_io.find_camera``.
+        ``_RPC.TXT``, ``.XML``), see ``tiledsm.io.cameras.find_camera``.
     band : int, optional
         1-based band to select (dims then ``(y, x)``).
     require_camera : bool

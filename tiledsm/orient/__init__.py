@@ -7,7 +7,6 @@ tiles the matching with dask; :mod:`~tiledsm.orient.stage` reads the inputs
 and writes the corrected RPCs.
 """
 
-import tiledsm.recipes  # noqa: F401,I001  (first: it defines _Strict, then imports OrientSpec from .spec)
 from tiledsm.orient.adjust import AdjustParams, AdjustResult, Block, adjust_block, intersect
 from tiledsm.orient.bias import MODELS, BiasModel, choose_model, get_model
 from tiledsm.orient.dem import ReferenceDEM

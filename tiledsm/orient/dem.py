@@ -87,7 +87,7 @@ class ReferenceDEM:
         from pyproj import Transformer
         from rasterio.windows import Window, from_bounds
 
-        from tiledsm.geometry.geoid import geoid_height
+        from tiledsm.io.geoid import geoid_height
 
         path = Path(path)
         if not path.is_file():

@@ -31,7 +31,7 @@ import numpy as np
 
 from tiledsm.errors import InputFileError
 
-__all__ = ["ControlPoints", "read_points", "CSV_COLUMNS"]
+__all__ = ["ControlPoints", "read_points", "point_residuals", "CSV_COLUMNS"]
 
 #: required CSV columns
 CSV_COLUMNS = ("id", "image", "lon", "lat", "h", "row", "col")
@@ -213,3 +213,17 @@ def read_points(
         ids=np.array(out["ids"], dtype=str), image=np.array(out["image"], int),
         **{k: np.array(out[k], float) for k in ("lon", "lat", "h", "row", "col")}, source=str(path),
     )
+
+
+def point_residuals(rpcs, pts: ControlPoints) -> np.ndarray:
+    """``(n, 2)`` residuals ``(row, col)`` in pixels of every measurement of
+    ``pts``: the projection of its ground point by the RPC of its image
+    (``rpcs[pts.image[k]]``, GDAL pixel convention) minus the measured
+    position."""
+    out = np.full((len(pts), 2), np.nan)
+    for i, rpc in enumerate(rpcs):
+        m = pts.image == i
+        if m.any():
+            r, c = rpc.project(pts.lon[m], pts.lat[m], pts.h[m])
+            out[m] = np.column_stack([r - pts.row[m], c - pts.col[m]])
+    return out

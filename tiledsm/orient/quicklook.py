@@ -28,7 +28,7 @@ def residual_figure(o, max_ties: int = 400):
     from matplotlib.figure import Figure
 
     from tiledsm.orient.adjust import intersect
-    from tiledsm.orient.stage import _point_residuals
+    from tiledsm.orient.points import point_residuals
 
     n = len(o.paths)
     fig = Figure(figsize=(4.2 * n, 8.4))
@@ -40,7 +40,7 @@ def residual_figure(o, max_ties: int = 400):
             i, p, r, c = o.tracks.observations()
             _, res = intersect(rpcs, i, p, r, c, o.tracks.n)
             ties = (i, r, c, res)
-        g, ch = _point_residuals(rpcs, o.gcps), _point_residuals(rpcs, o.checks)
+        g, ch = point_residuals(rpcs, o.gcps), point_residuals(rpcs, o.checks)
         scale = _scale([g, ch] + ([ties[3]] if ties else []), size)
         for k in range(n):
             ax = fig.add_subplot(2, n, row * n + k + 1)

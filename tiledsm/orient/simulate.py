@@ -12,6 +12,7 @@ from typing import Sequence
 
 import numpy as np
 
+from tiledsm.geometry.fit import with_affine
 from tiledsm.geometry.rpc import RPC
 
 __all__ = ["pushbroom_rpcs", "invert_affine", "inject_bias", "ground_points", "project_all", "write_points_csv",
@@ -67,7 +68,7 @@ def inject_bias(rpc: RPC, a, b, shape: tuple[int, int], h_range: tuple[float, fl
     so that :func:`~tiledsm.orient.adjust.adjust_block` should find
     ``(a, b)`` (the model of :mod:`tiledsm.orient.bias`)."""
     ia, ib = invert_affine(a, b)
-    return rpc.with_affine(ia, ib, image_shape=shape, h_range=h_range, max_error=0.005)
+    return with_affine(rpc, ia, ib, image_shape=shape, h_range=h_range, max_error=0.005)
 
 
 def ground_points(rpc: RPC, shape: tuple[int, int], h_range: tuple[float, float], n: int, seed: int = 0,

@@ -28,12 +28,12 @@ from typing import Callable, Literal, Optional, Sequence
 import numpy as np
 from pydantic import Field, model_validator
 
-from tiledsm.recipes import _Strict
+from tiledsm.recipes import StrictModel
 
 __all__ = ["OrientSpec", "orient_for_recipe", "polygon_exclusion"]
 
 
-class OrientSpec(_Strict):
+class OrientSpec(StrictModel):
     """``orient:`` — bias-compensated orientation of the images before
     their DSM (:mod:`tiledsm.orient`)."""
 
@@ -116,7 +116,7 @@ def orient_for_recipe(
     InputFileError, RPCError, InvalidOptionError, MatchingError
         As :func:`~tiledsm.orient.stage.orient_images`.
     """
-    from tiledsm.geometry.rpc_io import find_camera
+    from tiledsm.io.cameras import find_camera
     from tiledsm.orient.dem import ReferenceDEM
     from tiledsm.orient.stage import OrientParams, orient_images, write_orientation
 

@@ -5,7 +5,7 @@ Steps (:func:`orient_images`): find every image's camera; read GCPs and
 check points; multi-view tie-point tracks (:mod:`tiledsm.orient.tracks`,
 P2L-filtered); one block adjustment (:mod:`tiledsm.orient.adjust`) with a
 bias model per image (:mod:`tiledsm.orient.bias`); fold each image's
-correction into its RPC (:meth:`tiledsm.geometry.rpc.RPC.with_affine`);
+correction into its RPC (:func:`tiledsm.geometry.fit.with_affine`);
 residuals before and after at GCPs, check points (held out of the fit) and
 tie points. :func:`write_orientation` writes the products.
 
@@ -24,11 +24,12 @@ from typing import Sequence
 
 import numpy as np
 
+from tiledsm.geometry.fit import with_affine
 from tiledsm.errors import InvalidOptionError, MatchingError
 from tiledsm.geometry.rpc import RPC
 from tiledsm.orient.adjust import AdjustParams, AdjustResult, Block, adjust_block, intersect
 from tiledsm.orient.bias import TERMS, BiasModel, choose_model, get_model
-from tiledsm.orient.points import ControlPoints, read_points
+from tiledsm.orient.points import ControlPoints, point_residuals, read_points
 from tiledsm.orient.tracks import Tracks, TrackParams, tie_point_tracks
 
 __all__ = ["OrientParams", "Orientation", "orient_images", "write_orientation", "residual_rms"]
@@ -88,16 +89,6 @@ def residual_rms(res: np.ndarray) -> float | None:
     res = np.asarray(res, float).reshape(-1, 2)
     ok = np.all(np.isfinite(res), axis=1)
     return float(np.sqrt(np.mean(np.sum(res[ok] ** 2, axis=1)))) if ok.any() else None
-
-
-def _point_residuals(rpcs: Sequence[RPC], pts: ControlPoints) -> np.ndarray:
-    out = np.full((len(pts), 2), np.nan)
-    for i, rpc in enumerate(rpcs):
-        m = pts.image == i
-        if m.any():
-            r, c = rpc.project(pts.lon[m], pts.lat[m], pts.h[m])
-            out[m] = np.column_stack([r - pts.row[m], c - pts.col[m]])
-    return out
 
 
 def _choose_models(n_img: int, names: Sequence[str], gcps: ControlPoints, gcp_file: bool, n_tie: np.ndarray,
@@ -162,7 +153,7 @@ def orient_images(
     """
     import rasterio
 
-    from tiledsm.geometry.rpc_io import find_camera
+    from tiledsm.io.cameras import find_camera
 
     t0 = time.perf_counter()
     paths = tuple(Path(p) for p in paths)
@@ -261,7 +252,7 @@ def orient_images(
         a, b = m.full(result.x[i])
         terms.append(dict(zip(TERMS, [float(v) for v in (*a, *b)])))
         h_range = (rpc.height_off - abs(rpc.height_scale), rpc.height_off + abs(rpc.height_scale))
-        after.append(rpc.with_affine(a, b, image_shape=shapes[i], h_range=h_range,
+        after.append(with_affine(rpc, a, b, image_shape=shapes[i], h_range=h_range,
                                      max_error=params.refit_max_error_px).replace(
             source=f"{paths[i]} bias-corrected ({m.name})"))
     timings["fold"] = time.perf_counter() - t1
@@ -288,10 +279,10 @@ def _report(paths, before, after, models, terms, g, chk, tracks, guide, block, r
     gcp_ids = set(g.ids.tolist())
     rep = {
         "images": [],
-        "gcp_rms_px": {"before": residual_rms(_point_residuals(before, g)),
-                       "after": residual_rms(_point_residuals(after, g))},
-        "check_rms_px": {"before": residual_rms(_point_residuals(before, chk)),
-                         "after": residual_rms(_point_residuals(after, chk))},
+        "gcp_rms_px": {"before": residual_rms(point_residuals(before, g)),
+                       "after": residual_rms(point_residuals(after, g))},
+        "check_rms_px": {"before": residual_rms(point_residuals(before, chk)),
+                         "after": residual_rms(point_residuals(after, chk))},
         "tie_relative_rms_px": {"before": _tie_relative(before, tracks), "after": _tie_relative(after, tracks)},
         "rejected_gcps": sorted({r.split("@")[0] for r in rej_ids if r.split("@")[0] in gcp_ids}),
         "rejected_measurements": rej_ids if len(rej_ids) <= 200 else rej_ids[:200] + [f"... {len(rej_ids) - 200} more"],
@@ -317,10 +308,10 @@ def _report(paths, before, after, models, terms, g, chk, tracks, guide, block, r
             "n_tie_measurements": int(np.sum(m & ~np.isfinite(block.prior_sigma_m[block.pt]))),
             "n_gcp_measurements": int(np.sum(g.image == i)),
             "n_rejected": int(np.sum(rejected & m)),
-            "gcp_rms_px": {"before": residual_rms(_point_residuals(before, g)[g.image == i]),
-                           "after": residual_rms(_point_residuals(after, g)[g.image == i])},
-            "check_rms_px": {"before": residual_rms(_point_residuals(before, chk)[chk.image == i]),
-                             "after": residual_rms(_point_residuals(after, chk)[chk.image == i])},
+            "gcp_rms_px": {"before": residual_rms(point_residuals(before, g)[g.image == i]),
+                           "after": residual_rms(point_residuals(after, g)[g.image == i])},
+            "check_rms_px": {"before": residual_rms(point_residuals(before, chk)[chk.image == i]),
+                             "after": residual_rms(point_residuals(after, chk)[chk.image == i])},
             "rpc_before": before[i].source,
         })
     return rep
@@ -349,7 +340,7 @@ def write_orientation(o: Orientation, out_dir: str | Path, params: OrientParams 
     dict
         The ``orient.json`` document.
     """
-    from tiledsm.geometry.rpc_io import rpc_txt_path, write_rpc_txt
+    from tiledsm.io.cameras import rpc_txt_path, write_rpc_txt
     from tiledsm.io import atomic_path, withdraw
     from tiledsm.orient.export import copy_with_rpc
     from tiledsm.orient.quicklook import residual_figure
@@ -380,7 +371,7 @@ def write_orientation(o: Orientation, out_dir: str | Path, params: OrientParams 
     # residual table
     rows = ["id,image,kind,row,col,drow_before,dcol_before,drow_after,dcol_after"]
     for kind, pts in (("gcp", o.gcps), ("check", o.checks)):
-        rb, ra = _point_residuals(o.rpcs_before, pts), _point_residuals(o.rpcs_after, pts)
+        rb, ra = point_residuals(o.rpcs_before, pts), point_residuals(o.rpcs_after, pts)
         for k in range(len(pts)):
             rows.append(f"{pts.ids[k]},{o.paths[pts.image[k]].name},{kind},{pts.row[k]:.3f},{pts.col[k]:.3f},"
                         f"{rb[k, 0]:.4f},{rb[k, 1]:.4f},{ra[k, 0]:.4f},{ra[k, 1]:.4f}")

@@ -52,6 +52,7 @@ from tiledsm.errors import GridError, InvalidOptionError, NoOverlapError
 from tiledsm.geometry.camera import Camera, height_parallax
 from tiledsm.geometry.footprint import to_lonlat
 from tiledsm.geometry.grid import GroundGrid
+from tiledsm.io.grids import grid_like
 from tiledsm.ortho.kernels import get_kernel, sample
 
 __all__ = ["OrthoParams", "ImageSource", "ortho_grid", "orthorectify", "ortho_halo", "check_sees"]
@@ -116,7 +117,7 @@ class ImageSource:
     @classmethod
     def from_file(cls, path: str | Path, camera: Camera | None = None, band: int = 1) -> "ImageSource":
         """An image file with ``camera`` (default: its RPC, from tags or a
-        sidecar, :func:`tiledsm.geometry.rpc_io.find_camera`)."""
+        sidecar, :func:`tiledsm.io.cameras.find_camera`)."""
         import rasterio
 
         from tiledsm.errors import InputFileError
@@ -125,7 +126,7 @@ class ImageSource:
         if not p.is_file():
             raise InputFileError(f"{p}: no such image")
         if camera is None:
-            from tiledsm.geometry.rpc_io import find_camera
+            from tiledsm.io.cameras import find_camera
 
             camera, _ = find_camera(p, None)
         try:
@@ -397,7 +398,7 @@ def orthorectify(
     import rioxarray  # noqa: F401
 
     height = _as_height(dsm)
-    dgrid = GroundGrid.like(height, chunk=chunk // params.factor if chunk else None)
+    dgrid = grid_like(height, chunk=chunk // params.factor if chunk else None)
     if crs is not None:
         from pyproj import CRS
 

@@ -116,13 +116,13 @@ def ortho_files(
     ``resolution`` (metres) must divide the DSM's cell size. The camera is
     :func:`open_source`'s (on a tiledsm ``dsm.zarr``, an image the DSM was
     made from keeps the RPC it was matched with)."""
-    from tiledsm.geometry.grid import GroundGrid
+    from tiledsm.io.grids import grid_like
     from tiledsm.ortho.kernels import get_kernel
 
     get_kernel(kernel, field="--kernel")
     source = open_source(image, camera_file, dsm=dsm)
     height = open_dsm(dsm)
-    factor = resolution_factor(GroundGrid.like(height).resolution, resolution)
+    factor = resolution_factor(grid_like(height).resolution, resolution)
     if chunk % factor:
         raise InvalidOptionError(f"--chunk: must be a multiple of the resolution factor {factor}, got {chunk}")
     params = OrthoParams(kernel=kernel, factor=factor, occlusion=occlusion, occlusion_tolerance=occlusion_tolerance)

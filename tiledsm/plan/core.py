@@ -282,13 +282,13 @@ def new_plan(command: str, out: str | os.PathLike, cluster=None, *, limits: Limi
     """An empty :class:`Plan` of ``command`` writing ``out`` (made
     absolute), after the checks every command shares: ``workers`` (the
     option or field naming the worker count) >= 1, and, for an output
-    ``folder``, no live run holding it (:meth:`tiledsm.provenance.OutputLock.check`)."""
+    ``folder``, no live run holding it (:meth:`tiledsm.io.lock.OutputLock.check`)."""
     out = Path(out).expanduser().resolve()
     check_workers(getattr(cluster, "workers", None), workers)
     if folder and out.exists() and not out.is_dir():
         raise InvalidOptionError(f"{out}: --out: is a file, expected a folder (new or from an earlier run)")
     if folder and out.is_dir():
-        from tiledsm.provenance import OutputLock
+        from tiledsm.io.lock import OutputLock
 
         OutputLock(out).check()
     return Plan(command, out, cluster=describe_cluster(cluster), limits=limits)

@@ -49,10 +49,11 @@ def _explicit_grid(spec, names: FieldNames, like: str | None):
     """The grid a recipe's ``grid`` section names (``like`` or ``bounds``)
     and the option to blame for it, or ``(None, resolution option)``."""
     from tiledsm.geometry.grid import GroundGrid
+    from tiledsm.io.grids import grid_like
 
     if like:
         try:
-            return GroundGrid.like(like, chunk=spec.chunk), f"{names.like} {like}"
+            return grid_like(like, chunk=spec.chunk), f"{names.like} {like}"
         except TiledsmError as exc:
             raise type(exc)(f"{names.like}: {exc}") from None
     if spec.bounds:
@@ -89,7 +90,7 @@ def _check_geoid_covers(geoid: str, grid, name: str) -> None:
     import numpy as np
 
     from tiledsm.geometry.footprint import to_lonlat
-    from tiledsm.geometry.geoid import geoid_height
+    from tiledsm.io.geoid import geoid_height
 
     x = np.array([grid.x[0], grid.x[-1], grid.x[0], grid.x[-1], grid.x[len(grid.x) // 2]])
     y = np.array([grid.y[0], grid.y[0], grid.y[-1], grid.y[-1], grid.y[len(grid.y) // 2]])

@@ -127,7 +127,7 @@ def plan_orient(
     import math
 
     from tiledsm.geometry.footprint import overlap_lonlat_bounds
-    from tiledsm.geometry.rpc_io import find_camera
+    from tiledsm.io.cameras import find_camera
     from tiledsm.orient.points import ControlPoints, read_points
 
     if geoid and not dem:

@@ -98,9 +98,9 @@ def plan_compare(ref: str, other: str, out: str, *, stable_mask: str | None, chu
         heads[name] = (p, h)
         plan.inputs.append(InputInfo(name, p, f"{h['shape'][0]} x {h['shape'][1]} cells of {h['res']:g}, {h['crs']}"))
     (ref_p, rh), (oth_p, oh) = heads["REF"], heads["OTHER"]
-    from tiledsm.geometry.grid import GroundGrid
+    from tiledsm.io.grids import grid_like
 
-    grid = GroundGrid.like(ref_p, chunk=chunks)
+    grid = grid_like(ref_p, chunk=chunks)
     frac = overlap_fraction(oh["bounds"], oh["crs"], grid)
     refuse_or_warn(plan, frac, NoOverlapError(f"{oth_p}: OTHER: has no ground in common with REF {ref_p}"),
                     f"{oth_p}: OTHER covers only {frac:.0%} of REF's grid")

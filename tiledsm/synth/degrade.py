@@ -127,8 +127,8 @@ def degrade(
 
     from tiledsm.geometry import RPC
     from tiledsm.io import atomic_path
-    from tiledsm.synth.render import _finish
-    from tiledsm.synth.scene import _profile
+    from tiledsm.synth.render import finish_dn
+    from tiledsm.synth.scene import raster_profile
 
     in_tif, out_tif = Path(in_tif), Path(out_tif)
     if not in_tif.exists():
@@ -152,7 +152,7 @@ def degrade(
         rpc = None
         if src.rpcs is not None:
             rpc = RPC.from_gdal(src.rpcs.to_gdal(), source=str(in_tif)).scaled(1.0 / scale)
-        profile = _profile(out_dtype, (my, mx), rpc=rpc)
+        profile = raster_profile(out_dtype, (my, mx), rpc=rpc)
         if src.crs is not None:
             profile.update(crs=src.crs, transform=src.transform * src.transform.scale(scale))
         if src.nodata is not None and integer:
@@ -172,7 +172,7 @@ def degrade(
                     low = np.asarray((wx.T @ low.T).T)
                     if integer:
                         q = np.empty(low.shape, out_dtype)
-                        _finish(np.ascontiguousarray(low), o0, 0, int(seed), 7919, float(noise), dn_max, q)
+                        finish_dn(np.ascontiguousarray(low), o0, 0, int(seed), 7919, float(noise), dn_max, q)
                         low = q
                     elif noise > 0:
                         rng = np.random.default_rng([int(seed), o0])

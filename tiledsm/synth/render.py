@@ -124,7 +124,7 @@ def surface_lattice(ground, xmin, xmax, ymin, ymax, step, radiometry: Radiometry
 
 
 @numba.njit(nogil=True, cache=True)
-def _coarse_max(h, cs):
+def coarse_max(h, cs):
     ny, nx = h.shape
     cny = (ny - 1) // cs + 1
     cnx = (nx - 1) // cs + 1
@@ -151,7 +151,7 @@ def _coarse_max(h, cs):
 
 
 @numba.njit(nogil=True, cache=True, inline="always")
-def _bilinear(img, fy, fx):
+def bilinear_at(img, fy, fx):
     ny, nx = img.shape
     i = int(math.floor(fy))
     j = int(math.floor(fx))
@@ -211,7 +211,7 @@ def march(origins, dirs, height, radiance, x0, y0, step, cmax, cs, ztop, zbot, o
                     za = z
                     z = max(cm, z - coarse, zbot)
                     continue
-                if z - _bilinear(height, fy, fx) <= 0.0:
+                if z - bilinear_at(height, fy, fx) <= 0.0:
                     hit = True
                     break
                 za = z
@@ -224,21 +224,21 @@ def march(origins, dirs, height, radiance, x0, y0, step, cmax, cs, ztop, zbot, o
                     zm = 0.5 * (za + zb)
                     fxm = (sx + (zm - sz) * gx - x0) / step
                     fym = (sy + (zm - sz) * gy - y0) / step
-                    if zm - _bilinear(height, fym, fxm) > 0.0:
+                    if zm - bilinear_at(height, fym, fxm) > 0.0:
                         za = zm
                     else:
                         zb = zm
                 z = 0.5 * (za + zb)
             fx = (sx + (z - sz) * gx - x0) / step
             fy = (sy + (z - sz) * gy - y0) / step
-            out_rad[r, c] = _bilinear(radiance, fy, fx)
+            out_rad[r, c] = bilinear_at(radiance, fy, fx)
             out_xyz[r, c, 0] = x0 + fx * step
             out_xyz[r, c, 1] = y0 + fy * step
             out_xyz[r, c, 2] = z
 
 
 @numba.njit(nogil=True, cache=True)
-def _finish(dn, row0, col0, seed, view, noise, dn_max, out):
+def finish_dn(dn, row0, col0, seed, view, noise, dn_max, out):
     ny, nx = dn.shape
     for i in range(ny):
         for j in range(nx):
@@ -298,7 +298,7 @@ def render_window(
     pad = 2.0 * step
     xmin, xmax, ymin, ymax = ground_window(camera, r0 - halo, r1 + halo, c0 - halo, c1 + halo, h_range, origin, pad)
     x0, y0, height, radiance = surface_lattice(ground, xmin, xmax, ymin, ymax, step, radiometry)
-    cmax = _coarse_max(height, COARSE)
+    cmax = coarse_max(height, COARSE)
     rr = np.arange(r0 - halo, r1 + halo) + 0.5
     cc = np.arange(c0 - halo, c1 + halo) + 0.5
     o, _ = camera.rays(rr, np.full_like(rr, 0.5 * camera.cols))
@@ -315,7 +315,7 @@ def render_window(
         dn = ndimage.gaussian_filter(dn, radiometry.psf_sigma, truncate=4.0, mode="nearest")
     inner = (slice(halo, halo + r1 - r0), slice(halo, halo + c1 - c0))
     out = np.empty((r1 - r0, c1 - c0), np.uint16)
-    _finish(np.ascontiguousarray(dn[inner]), r0, c0, int(seed), int(view), float(radiometry.noise),
+    finish_dn(np.ascontiguousarray(dn[inner]), r0, c0, int(seed), int(view), float(radiometry.noise),
             float(2**radiometry.bits - 1), out)
     if truth:
         return out, rad[inner], xyz[inner]

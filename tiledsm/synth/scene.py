@@ -198,7 +198,7 @@ def _store(items, *, workers=None):
             da.store(sources, targets, lock=lock)
 
 
-def _profile(dtype, shape, *, grid=None, rpc=None, nodata=None, block=256):
+def raster_profile(dtype, shape, *, grid=None, rpc=None, nodata=None, block=256):
     from rasterio.rpc import RPC as RioRPC
 
     ny, nx = shape
@@ -424,8 +424,8 @@ def make_scene(
     items = []
     truth = _truth_arrays(world, grid, origin, ev)
     paths = {"truth_dsm": out / "truth_dsm.tif", "truth_label": out / "truth_label.tif"}
-    items.append((truth[0], paths["truth_dsm"], _profile(np.float32, (size, size), grid=grid)))
-    items.append((truth[1].astype(np.uint8), paths["truth_label"], _profile(np.uint8, (size, size), grid=grid)))
+    items.append((truth[0], paths["truth_dsm"], raster_profile(np.float32, (size, size), grid=grid)))
+    items.append((truth[1].astype(np.uint8), paths["truth_label"], raster_profile(np.uint8, (size, size), grid=grid)))
     event_info = None
     if ev is not None:
         names = ("post_dsm", "post_label", "dh", "dx", "dy", "dz")
@@ -435,8 +435,8 @@ def make_scene(
             arr = truth[2 + k]
             dtype = np.uint8 if name == "post_label" else np.float32
             event_info[name] = out / fname
-            items.append((arr.astype(dtype), out / fname, _profile(dtype, (size, size), grid=grid)))
-    mask_profile = _profile(np.uint8, (size, size), grid=grid)
+            items.append((arr.astype(dtype), out / fname, raster_profile(dtype, (size, size), grid=grid)))
+    mask_profile = raster_profile(np.uint8, (size, size), grid=grid)
 
     def masks(ground, prefix):
         vis = _visibility_array(ground, cameras, grid, origin, h_range, visibility, radiometry)
@@ -456,14 +456,14 @@ def make_scene(
         p = out / f"view_{i}.tif"
         view_paths.append(p)
         img = _image_array(world, cam, origin, h_range, radiometry, seed, i, chunk)
-        items.append((img, p, _profile(np.uint16, (size, size), rpc=rpc)))
+        items.append((img, p, raster_profile(np.uint16, (size, size), rpc=rpc)))
     if ev is not None:
         post_paths = []
         for i, (cam, rpc) in enumerate(zip(cameras, rpcs)):
             p = out / f"post_view_{i}.tif"
             post_paths.append(p)
             img = _image_array(ground_post, cam, origin, h_range, radiometry, seed, 100 + i, chunk)
-            items.append((img, p, _profile(np.uint16, (size, size), rpc=rpc)))
+            items.append((img, p, raster_profile(np.uint16, (size, size), rpc=rpc)))
         event_info["post_views"] = tuple(post_paths)
     _store(items, workers=workers)
     timings["render_and_write"] = time.perf_counter() - t1

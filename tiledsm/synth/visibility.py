@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from tiledsm.synth.render import COARSE, RadiometryParams, _bilinear, _coarse_max
+from tiledsm.synth.render import COARSE, RadiometryParams, bilinear_at, coarse_max
 
 __all__ = ["VisibilityParams", "visibility_window", "edge_cells"]
 
@@ -90,7 +90,7 @@ def _march_up(px, py, pz, gx, gy, u0, height, x0, y0, step, cmax, cs, zmax, out)
                 # every sample within cs lattice steps horizontally is below z
                 n += 2 * cs
                 continue
-            if _bilinear(height, fy, fx) > z:
+            if bilinear_at(height, fy, fx) > z:
                 vis = 0
                 break
             n += 1
@@ -197,7 +197,7 @@ def visibility_window(
     i0, i1 = int(math.floor((ymin - pad) / step)), int(math.ceil((ymax + pad) / step))
     lat = ground.evaluate(np.arange(j0, j1 + 1) * step, np.arange(i0, i1 + 1) * step)[0]
     lat = np.ascontiguousarray(lat, np.float32)
-    cmax = _coarse_max(lat, COARSE)
+    cmax = coarse_max(lat, COARSE)
     zmax = float(lat.max())
     vis = np.zeros((len(cameras), r1 - r0, c1 - c0), bool)
     for v, (gx, gy, inside, gsd) in enumerate(rays):

@@ -65,15 +65,23 @@ from pydantic import Field, field_validator, model_validator
 
 from tiledsm.errors import NoOverlapError, TiledsmError
 from tiledsm.orient.spec import OrientSpec
-from tiledsm.recipes import ClusterSpec, GridSpec, MatchSpec, OutputSpec, SynthInput, _Strict, register_recipe
+from tiledsm.recipes import ClusterSpec, GridSpec, MatchSpec, OutputSpec, SynthInput, StrictModel
+from tiledsm.workflows.fault import (
+    Fault,
+    error_stats,
+    event_exclusion_polygons,
+    expected_coregistration,
+    throw_across,
+    write_geojson,
+)
 
-__all__ = ["DeformationRecipe", "run_deformation", "throw_across", "Fault"]
+__all__ = ["DeformationRecipe", "run_deformation"]
 
 log = logging.getLogger("tiledsm.workflows.deformation")
 
 
 # --------------------------------------------------------------------------- recipe schema
-class PairInput(_Strict):
+class PairInput(StrictModel):
     """One stereo pair (or more views) of one epoch: images with RPCs in their
     tags, a sidecar, or ``rpcs`` (one entry per image, ``null`` allowed)."""
 
@@ -106,7 +114,7 @@ class EventSynthInput(SynthInput):
         return value
 
 
-class DeformationInput(_Strict):
+class DeformationInput(StrictModel):
     """Either ``synth`` (known truth) or the ``pre`` and ``post`` pairs."""
 
     synth: Optional[EventSynthInput] = None
@@ -129,7 +137,7 @@ class DeformationInput(_Strict):
         return self
 
 
-class FaultSpec(_Strict):
+class FaultSpec(StrictModel):
     """Fault trace across which the throw is measured (real inputs; a
     synthetic event knows its own); the strips are ``compare.strip``."""
 
@@ -138,7 +146,7 @@ class FaultSpec(_Strict):
     )
 
 
-class CompareSpec(_Strict):
+class CompareSpec(StrictModel):
     """Comparison stage (see :class:`tiledsm.compare.CompareParams`)."""
 
     coreg: str = Field("nuth_kaab", description="co-registration method: 'nuth_kaab' or 'none'")
@@ -182,7 +190,7 @@ class DeformationOrientSpec(OrientSpec):
         return self
 
 
-class DeformationRecipe(_Strict):
+class DeformationRecipe(StrictModel):
     """``pipeline: deformation`` — pre and post pairs to a vertical
     displacement map, co-registered on stable terrain, with the throw."""
 
@@ -204,159 +212,14 @@ class DeformationRecipe(_Strict):
         return self
 
 
-register_recipe("deformation", DeformationRecipe)
-
-
-# --------------------------------------------------------------------------- pure helpers
-class Fault:
-    """A straight fault trace in a projected CRS (metres).
-
-    Parameters
-    ----------
-    point : (float, float)
-        A point of the trace, CRS x/y.
-    strike : (float, float)
-        Direction of the trace (normalised here); the right-hand normal
-        ``(sy, -sx)`` points to the "right" block.
-    """
-
-    def __init__(self, point, strike):
-        self.point = np.asarray(point, np.float64)
-        s = np.asarray(strike, np.float64)
-        self.strike = s / np.hypot(*s)
-        self.normal = np.array([self.strike[1], -self.strike[0]])
-
-    def signed_distance(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Metres from the trace, positive on the right block, for cell
-        centres ``x`` (columns) by ``y`` (rows)."""
-        x = np.asarray(x, np.float64)[None, :]
-        y = np.asarray(y, np.float64)[:, None]
-        return (x - self.point[0]) * self.normal[0] + (y - self.point[1]) * self.normal[1]
-
-    def to_dict(self) -> dict:
-        return {"point": self.point.tolist(), "strike": self.strike.tolist(), "normal_right": self.normal.tolist()}
-
-
-def throw_across(dh: np.ndarray, distance: np.ndarray, strip: tuple[float, float], valid: np.ndarray | None = None) -> dict:
-    """Robust vertical offset across a fault trace.
-
-    Parameters
-    ----------
-    dh : ndarray
-        Height change, metres (NaN = none).
-    distance : ndarray
-        Signed distance of each cell to the trace, metres (positive: right).
-    strip : (float, float)
-        Inner and outer distance of the two strips, metres.
-    valid : ndarray of bool, optional
-        Cells allowed (e.g. visible ground).
-
-    Returns
-    -------
-    dict
-        ``throw`` (median right minus median left, metres), ``right``,
-        ``left`` (the medians) and ``n_right``, ``n_left`` (cells used).
-    """
-    ok = np.isfinite(dh) if valid is None else (np.asarray(valid, bool) & np.isfinite(dh))
-    a = np.abs(distance)
-    band = ok & (a >= strip[0]) & (a <= strip[1])
-    right, left = band & (distance > 0), band & (distance < 0)
-    if not right.any() or not left.any():
-        raise TiledsmError(
-            f"throw: no valid dh in the strips {strip[0]}-{strip[1]} m on the "
-            f"{'right' if not right.any() else 'left'} of the fault trace (does the trace cross the grid?)"
-        )
-    r, l_ = float(np.median(dh[right])), float(np.median(dh[left]))
-    return {"throw": r - l_, "right": r, "left": l_, "n_right": int(right.sum()), "n_left": int(left.sum())}
-
-
-def error_stats(err: np.ndarray) -> dict:
-    """RMSE, mean, median, NMAD and 95th percentile of ``|err|`` (metres)."""
-    err = np.asarray(err, np.float64)
-    if err.size == 0:
-        return {"count": 0}
-    med = float(np.median(err))
-    return {
-        "count": int(err.size),
-        "rmse": float(np.sqrt(np.mean(err**2))),
-        "mean": float(np.mean(err)),
-        "median": med,
-        "nmad": float(1.4826 * np.median(np.abs(err - med))),
-        "le95": float(np.percentile(np.abs(err), 95)),
-    }
-
-
-def _polygon_feature(ring, name: str) -> dict:
-    return {"type": "Feature", "properties": {"name": name},
-            "geometry": {"type": "Polygon", "coordinates": [[[float(x), float(y)] for x, y in ring]]}}
-
-
-def event_exclusion_polygons(event, origin, extent: float, uplift_tol: float = 0.05) -> tuple[list[dict], int]:
-    """Exclusion polygons (GeoJSON features, scene CRS) for a synthetic event.
-
-    Excluded: a fault-zone strip (half width ``max(10 m, 5 % of extent)``),
-    the disk where the uplift exceeds ``uplift_tol`` metres, and the whole
-    block holding the uplift centre — so the stable terrain left is the
-    other block, which moved rigidly.
-
-    Returns
-    -------
-    features, kept_side
-        ``kept_side`` is +1 when the right block is kept, -1 for the left.
-    """
-    p = np.asarray(event.fault_point, float) + np.asarray(origin, float)
-    s, n = event.strike, event.normal
-    big = 2.0 * extent  # reaches past the scene from any point of it
-    half = max(10.0, 0.05 * extent)
-    feats = [_polygon_feature([p - big * s - half * n, p + big * s - half * n, p + big * s + half * n,
-                               p - big * s + half * n, p - big * s - half * n], "fault zone")]
-    uc = np.asarray(event.uplift_center, float)
-    side_uplift = 1 if float(np.dot(uc - np.asarray(event.fault_point, float), n)) >= 0 else -1
-    kept = -side_uplift
-    if abs(event.uplift) > uplift_tol:
-        r = event.uplift_sigma * math.sqrt(2.0 * math.log(abs(event.uplift) / uplift_tol))
-        c = uc + np.asarray(origin, float)
-        t = np.linspace(0.0, 2 * math.pi, 65)
-        feats.append(_polygon_feature(np.column_stack([c[0] + r * np.cos(t), c[1] + r * np.sin(t)]), "uplift"))
-    m = side_uplift * n
-    feats.append(_polygon_feature([p - big * s, p + big * s, p + big * s + big * m, p - big * s + big * m, p - big * s],
-                                  "block holding the uplift"))
-    return feats, kept
-
-
-def _write_geojson(features: list[dict], crs: str, path: Path) -> Path:
-    from tiledsm.io import atomic_path
-
-    doc = {"type": "FeatureCollection", "crs": {"type": "name", "properties": {"name": crs}}, "features": features}
-    with atomic_path(path) as tmp:
-        Path(tmp).write_text(json.dumps(doc, indent=1))
-    return path
 
 
 # --------------------------------------------------------------------------- truth metrics
 def _on_grid(path, like, *, nearest: bool = False) -> np.ndarray:
     """A raster's values on the grid of ``like`` (float64)."""
-    from tiledsm.pipelines import _reference_on_grid
+    from tiledsm.workflows.common import reference_on_grid
 
-    return np.asarray(_reference_on_grid(path, like, "nearest" if nearest else "bilinear").values, np.float64)
-
-
-def expected_coregistration(stable: np.ndarray, dx: np.ndarray, dy: np.ndarray, dz: np.ndarray, res: float) -> dict:
-    """The co-registration that would align the post surface on the stable
-    cells, from the truth displacement (see the module notes).
-
-    ``dx, dy`` metres east/north, ``dz`` metres; ``res`` metres per cell of
-    a north-up grid. Returns ``dx_px, dy_px, dz`` in the signs of
-    :class:`tiledsm.compare.Coregistration` (correction applied to post).
-    """
-    if not stable.any():
-        return {"dx_px": 0.0, "dy_px": 0.0, "dz": 0.0, "n_cells": 0}
-    return {
-        "dx_px": -float(np.median(dx[stable])) / res,
-        "dy_px": float(np.median(dy[stable])) / res,
-        "dz": -float(np.median(dz[stable])),
-        "n_cells": int(stable.sum()),
-    }
+    return np.asarray(reference_on_grid(path, like, "nearest" if nearest else "bilinear").values, np.float64)
 
 
 def _synthetic_truth(scene, like, coreg_expected: dict):
@@ -477,9 +340,9 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
     from tiledsm.cluster import compute_context, shared_cluster
     from tiledsm.compare import CompareParams, compare_dsms
     from tiledsm.dsm import dsm_from_pair
-    from tiledsm.geometry.grid import GroundGrid
+    from tiledsm.io.grids import grid_like
     from tiledsm.io import open_product
-    from tiledsm.pipelines import _write_json, write_dsm_products
+    from tiledsm.workflows.common import write_dsm_products, write_json
     from tiledsm.recipes import grid_from_spec
 
     cluster = cluster or recipe.cluster.config()
@@ -499,7 +362,7 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
         pre_in = ([str(p) for p in scene.views], None)
         post_in = ([str(p) for p in scene.event["post_views"]], None)
         if not (g.like or g.bounds or g.resolution):
-            grid = GroundGrid.like(str(scene.truth_dsm), chunk=g.chunk)  # truth on the DSM grid, unresampled
+            grid = grid_like(str(scene.truth_dsm), chunk=g.chunk)  # truth on the DSM grid, unresampled
     else:
         pre_in = (inp.pre.images, inp.pre.rpcs)
         post_in = (inp.post.images, inp.post.rpcs)
@@ -509,7 +372,7 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
     stable_mask = recipe.compare.stable_mask
     if scene is not None and stable_mask is None and inp.synth.auto_stable_mask and recipe.compare.coreg != "none":
         feats, _ = event_exclusion_polygons(scene.event["params"], scene.origin, scene.grid.width * scene.grid.resolution)
-        stable_mask = str(_write_geojson(feats, scene.grid.crs, out / "scene" / "stable_mask.geojson"))
+        stable_mask = str(write_geojson(feats, scene.grid.crs, out / "scene" / "stable_mask.geojson"))
     orient_report = None
     if recipe.orient is not None:
         t0 = time.perf_counter()
@@ -518,7 +381,7 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
 
     # ---- both DSMs lazily, the post one on the pre grid; refuse a post pair off the grid before computing
     ds_pre, rep_pre = dsm_from_pair(*pre_in[0], rpcs=pre_in[1], grid=grid, params=params)
-    grid = GroundGrid.like(ds_pre["height"], chunk=params.chunk)
+    grid = grid_like(ds_pre["height"], chunk=params.chunk)
     ds_post, rep_post = dsm_from_pair(*post_in[0], rpcs=post_in[1], grid=grid, params=params)
     _check_post_sees_grid(post_in[0], post_in[1], rep_post["height_range_m"], grid, pre_in[0])
 
@@ -587,7 +450,7 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
     timings["metrics_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     metrics["timings"] = timings
-    _write_json(metrics, out / "metrics.json")
+    write_json(metrics, out / "metrics.json")
     log.info("metrics: %s", json.dumps(metrics, default=float))
     return metrics
 
@@ -628,12 +491,3 @@ def _truth_metrics(scene, dh_da, dh, co, stable_mask, distance, strip) -> dict:
         out["throw"] = {"recovered": mt["throw"], "truth": tt["throw"], "error": mt["throw"] - tt["throw"],
                         "nominal": float(ev["params"].throw), "cells": [mt["n_left"], mt["n_right"]]}
     return out
-
-
-def _register_runner() -> None:
-    from tiledsm.pipelines import _runner
-
-    _runner("deformation")(run_deformation)
-
-
-_register_runner()

@@ -59,7 +59,7 @@ from pydantic import Field, field_validator, model_validator
 from tiledsm.cluster import ClusterConfig, compute_context
 from tiledsm.errors import TiledsmError
 from tiledsm.geometry.grid import GroundGrid
-from tiledsm.recipes import ClusterSpec, OutputSpec, _Strict, register_recipe
+from tiledsm.recipes import ClusterSpec, OutputSpec, StrictModel
 
 log = logging.getLogger("tiledsm")
 
@@ -95,7 +95,7 @@ class OrthoSRError(TiledsmError):
 
 
 # ------------------------------------------------------------------ schema
-class UAVSynthSpec(_Strict):
+class UAVSynthSpec(StrictModel):
     """The synthetic UAV block (fields of :class:`tiledsm.synth.uav.UAVParams`;
     its ``scale`` is ``misr.scale``)."""
 
@@ -112,7 +112,7 @@ class UAVSynthSpec(_Strict):
     seed: int = 0
 
 
-class MISRSpec(_Strict):
+class MISRSpec(StrictModel):
     """Methods and options of ``pipeline: ortho_sr`` (module docstring)."""
 
     scale: int = Field(2, ge=2, le=4, description="LR GSD / HR cell")
@@ -151,13 +151,13 @@ class MISRSpec(_Strict):
         return value
 
 
-class OrthoSRInput(_Strict):
+class OrthoSRInput(StrictModel):
     """Input block: the synthetic UAV scene (the only input so far)."""
 
     synth: UAVSynthSpec = UAVSynthSpec()
 
 
-class OrthoSRRecipe(_Strict):
+class OrthoSRRecipe(StrictModel):
     """``pipeline: ortho_sr`` — a UAV block -> SR-S / SR-R / SR-O (and CNN)
     orthos on the HR grid, scored against the true ortho."""
 
@@ -372,7 +372,7 @@ def run_ortho_sr(recipe: OrthoSRRecipe, out: Path, cluster: ClusterConfig | None
     from tiledsm.misr.methods import MISRError, RegistrationError, SRInputs
     from tiledsm.misr.metrics import resolved_px
     from tiledsm.ortho.stage import write_ortho_products
-    from tiledsm.pipelines import _write_json
+    from tiledsm.workflows.common import write_json
     from tiledsm.io import atomic_path
     from tiledsm.sr.registry import WEIGHTLESS, weights_path
     from tiledsm.synth.uav import UAVParams, make_uav_scene
@@ -427,13 +427,5 @@ def run_ortho_sr(recipe: OrthoSRRecipe, out: Path, cluster: ClusterConfig | None
     }
     with atomic_path(out / "report.md") as tmp:
         Path(tmp).write_text(markdown_report(metrics))
-    _write_json(metrics, out / "metrics.json")
+    write_json(metrics, out / "metrics.json")
     return metrics
-
-
-register_recipe("ortho_sr", OrthoSRRecipe)
-
-# the runner registry lives in tiledsm.pipelines, which imports this module at its end
-from tiledsm.pipelines import _runner  # noqa: E402
-
-_runner("ortho_sr")(run_ortho_sr)

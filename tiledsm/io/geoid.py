@@ -19,11 +19,11 @@ import numpy as np
 
 from tiledsm.errors import InputFileError
 
-__all__ = ["geoid_height", "geoid_to_ellipsoid", "ellipsoid_to_geoid"]
+__all__ = ["load_geoid", "geoid_height", "geoid_to_ellipsoid", "ellipsoid_to_geoid"]
 
 
 @lru_cache(maxsize=4)
-def _load(path: str) -> tuple[np.ndarray, float, float, float, float, bool]:
+def load_geoid(path: str) -> tuple[np.ndarray, float, float, float, float, bool]:
     """(grid, lon0, lat0, dlon, dlat, wraps): node [i, j] at
     (lon0 + j*dlon, lat0 - i*dlat)."""
     import rasterio
@@ -68,7 +68,7 @@ def geoid_height(lon, lat, grid_path: str | Path) -> np.ndarray:
     InputFileError
         The grid file is missing or unreadable.
     """
-    grid, lon0, lat0, dlon, dlat, wraps = _load(str(Path(grid_path).resolve()))
+    grid, lon0, lat0, dlon, dlat, wraps = load_geoid(str(Path(grid_path).resolve()))
     lon, lat = np.broadcast_arrays(np.asarray(lon, float), np.asarray(lat, float))
     ny, nx = grid.shape
     x = (lon - lon0) / dlon

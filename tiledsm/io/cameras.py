@@ -31,7 +31,6 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 
 from tiledsm.errors import InputFileError, RPCError, UnsupportedFormatError
 from tiledsm.geometry.rpc import RPC

@@ -1,0 +1,76 @@
+"""Parameters of the DSM stage (:class:`DSMParams`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+from tiledsm.match.pyramid import SearchParams
+from tiledsm.match.sgvll import SGVLLParams
+
+
+@dataclass(frozen=True)
+class DSMParams:
+    """Parameters of the DSM stage.
+
+    Attributes
+    ----------
+    resolution : float or None
+        Ground cell size, metres; ``None`` takes the mean GSD of the views.
+    crs : str or None
+        CRS of the default grid (when no grid is given; projected, metres);
+        ``None`` takes the UTM zone of the scene centre.
+    chunk : int
+        Chunk side of the output grid, cells.
+    levels : int or None
+        Pyramid levels (1 = full resolution only). ``None`` chooses: one
+        level while the full-resolution sweep needs at most
+        ``max_candidates`` heights, and one more level for each doubling
+        beyond (measured on synthetic truth, a coarse level costs
+        completeness next to buildings, so it is used only when the search
+        is wide).
+    max_candidates : int
+        See ``levels``.
+    height_range : (float, float) or None
+        Scene height range (ellipsoidal metres); ``None`` estimates it from
+        tie points.
+    height_margin : float
+        Metres added on both sides of the tie-point height range.
+    refine_steps : int
+        Height steps searched on each side of the upsampled coarser DSM at
+        the finer levels.
+    relative_correction : bool
+        Correct the relative pointing error of views 2.. by a translation
+        estimated from tie points.
+    match : SGVLLParams
+        Matching parameters (window, penalties, thresholds).
+    search : SearchParams
+        How a coarser level's DSM becomes a finer level's search band.
+    """
+
+    resolution: float | None = None
+    crs: str | None = None
+    chunk: int = 512
+    levels: int | None = None
+    max_candidates: int = 192
+    height_range: tuple[float, float] | None = None
+    height_margin: float = 10.0
+    refine_steps: int = 4
+    relative_correction: bool = True
+    match: SGVLLParams = field(default_factory=SGVLLParams)
+    search: SearchParams = field(default_factory=SearchParams)
+
+    def __post_init__(self) -> None:
+        if self.chunk < 32 or self.chunk % 2:
+            # even chunks keep coarse and fine chunk corners aligned
+            raise ValueError(f"DSMParams.chunk must be even and >= 32, got {self.chunk}")
+        if self.levels is not None and self.levels < 1:
+            raise ValueError(f"DSMParams.levels must be >= 1, got {self.levels}")
+
+    def halo(self) -> int:
+        """Halo in cells (even) of a matching task: the semi-global paths'
+        restart period (:attr:`~tiledsm.match.sgvll.SGVLLParams.path_period`,
+        which makes the aggregation exact in every chunking), and at least
+        twice the correlation window."""
+        h = max(2 * self.match.window, self.match.path_period)
+        return h + h % 2

@@ -1,0 +1,164 @@
+"""What the workflows share: the run log, withdrawing a run folder's
+descriptions, writing the DSM products, a reference on a DSM's grid, DSM
+metrics and JSON reports."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+from tiledsm.cluster import ClusterConfig, compute_context, compute_with_progress
+
+log = logging.getLogger("tiledsm")
+
+__all__ = [
+    "DESCRIPTIONS", "DSM_EXPORTS", "setup_log", "withdraw_products", "dsm_metrics", "reference_on_grid",
+    "write_dsm_products", "grid_chunk", "footprint_completeness", "write_json",
+]
+
+
+def setup_log(out: Path) -> logging.Handler:
+    out.mkdir(parents=True, exist_ok=True)
+    handler = logging.FileHandler(out / "run.log")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    logging.getLogger("tiledsm").addHandler(handler)
+    logging.getLogger("tiledsm").setLevel(logging.INFO)
+    return handler
+
+
+#: files that describe a run folder's products; withdrawn while they change
+DESCRIPTIONS = ("metrics.json", "recipe.resolved.yaml")
+#: exports of the DSM store, rewritten from it at the end of a run
+DSM_EXPORTS = ("dsm.tif", "dsm.png", "dsm_error.png")
+
+
+def withdraw_products(out: Path, recipe, plan, overwrite: bool) -> list[str]:
+    """Remove ``metrics.json`` and ``recipe.resolved.yaml`` (and, for a
+    DSM, its exports) when this run is going to change the products: with
+    ``overwrite``, when the resolved recipe differs from the one stored, or
+    when the plan says the DSM store will be computed or completed
+    (``plan.withdraw``). Returns the names removed."""
+    import yaml
+
+    stored = out / "recipe.resolved.yaml"
+    try:
+        same = yaml.safe_load(stored.read_text()) == recipe.model_dump(mode="json")
+    except (OSError, yaml.YAMLError):
+        same = False
+    changes = overwrite or not same or (recipe.pipeline == "dsm" and plan.withdraw)
+    if not changes:
+        return []
+    names = DESCRIPTIONS + (DSM_EXPORTS if recipe.pipeline == "dsm" else ())
+    removed = [n for n in names if (out / n).is_file()]
+    for n in removed:
+        (out / n).unlink()
+    if removed:
+        log.info("withdrew %s: the products in %s are about to change", ", ".join(removed), out)
+    return removed
+
+
+def dsm_metrics(height: xr.DataArray, reference: xr.DataArray, mask: xr.DataArray | None = None) -> dict:
+    """Error statistics of a DSM against a reference on the same grid.
+
+    ``mask`` (True = evaluate) restricts the cells, e.g. to visible ground.
+    Completeness is the fraction of evaluated cells that have a height.
+    """
+    from tiledsm.compare.stats import difference_statistics
+
+    ref = reference.values.astype(np.float64)
+    h = height.values.astype(np.float64)
+    sel = np.isfinite(ref)
+    if mask is not None:
+        sel &= np.asarray(mask, bool)
+    stats = difference_statistics(h[sel] - ref[sel], reference=ref[sel])
+    return stats
+
+
+def reference_on_grid(path: str | Path, like: xr.DataArray, resampling: str = "bilinear") -> xr.DataArray:
+    """A reference raster on the grid of ``like``: as is when it shares it,
+    else resampled (``resampling``: a ``rasterio.enums.Resampling`` name;
+    ``"nearest"`` for masks and labels)."""
+    import rioxarray  # noqa: F401  (registers .rio)
+    from rasterio.enums import Resampling
+
+    ref = xr.open_dataarray(path, engine="rasterio", mask_and_scale=True).squeeze("band", drop=True)
+    if ref.rio.crs == like.rio.crs and ref.shape == like.shape and np.allclose(ref.rio.transform(), like.rio.transform()):
+        return ref.assign_coords(x=like.x, y=like.y)
+    return ref.rio.reproject_match(like, resampling=Resampling[resampling])
+
+
+def write_dsm_products(
+    ds: xr.Dataset,
+    out: Path,
+    *,
+    cluster: ClusterConfig,
+    cog: bool = True,
+    quicklook: bool = True,
+    overwrite: bool = False,
+) -> dict:
+    """Compute the lazy DSM into ``out/dsm.zarr``, then COG and PNG.
+
+    The store is resumable: chunks finished by an interrupted run are kept
+    and only the others are computed (``overwrite`` discards them).
+
+    Returns timings.
+    """
+    from tiledsm.io import write_cog, write_resumable
+    from tiledsm.quicklook import quicklook as make_quicklook
+
+    timings: dict = {}
+    t0 = time.perf_counter()
+    chunks: dict = {}
+    with compute_context(cluster) as client:
+        write_resumable(
+            ds,
+            out / "dsm.zarr",
+            compute=lambda delayed: compute_with_progress(delayed, config=cluster, client=client),
+            overwrite=overwrite,
+            report=chunks,
+        )
+    timings["match_s"] = time.perf_counter() - t0
+    timings["chunks"] = chunks
+    if chunks.get("chunks_reused"):
+        print(f"{out / 'dsm.zarr'}: reused {chunks['chunks_reused']} of {chunks['chunks_total']} chunks from an earlier run")
+    from tiledsm.io import open_product
+
+    stored = open_product(out / "dsm.zarr")
+    t1 = time.perf_counter()
+    if cog:
+        write_cog(stored["height"], out / "dsm.tif")
+    if quicklook:
+        make_quicklook(stored["height"], out / "dsm.png", kind="height", title="DSM (m, ellipsoidal)")
+    timings["export_s"] = time.perf_counter() - t1
+    return timings
+
+
+def grid_chunk(arr: xr.DataArray) -> int:
+    """Chunk edge of a dask-backed ``(y, x)`` array (1024 when in memory)."""
+    return int(arr.chunks[0][0]) if arr.chunks else 1024
+
+
+def footprint_completeness(height: xr.DataArray, views, h_range) -> float:
+    """Fraction of the cells seen by every view (cameras as used for
+    matching) that have a height (cells sampled every ``step`` rows/columns
+    so at most ~1 M are projected)."""
+    from tiledsm.dsm import footprint_mask
+    from tiledsm.io.grids import grid_like
+
+    grid = grid_like(height)
+    step = max(1, int(np.ceil(np.sqrt(height.size / 1e6))))
+    inside = footprint_mask(grid, views, float(np.mean(h_range)), step)
+    sample = np.isfinite(height[::step, ::step].values)
+    return float(sample[inside].mean()) if inside.any() else 0.0
+
+
+def write_json(obj: dict, path: Path) -> None:
+    from tiledsm.io import atomic_path
+
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(json.dumps(obj, indent=2, default=float))

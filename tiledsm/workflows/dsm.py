@@ -1,0 +1,114 @@
+"""``pipeline: dsm``: views (or a synthetic scene) to a DSM, its exports,
+its accuracy against a reference and ``metrics.json``; optionally the
+images oriented first (``orient:``)."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Literal, Optional
+
+import numpy as np
+from pydantic import Field
+
+from tiledsm.cluster import ClusterConfig
+from tiledsm.orient.spec import OrientSpec
+from tiledsm.recipes import ClusterSpec, GridSpec, InputSpec, MatchSpec, OutputSpec, StrictModel
+from tiledsm.workflows.common import footprint_completeness, grid_chunk, log, write_dsm_products, write_json
+
+__all__ = ["DSMRecipe", "run_dsm"]
+
+
+class DSMRecipe(StrictModel):
+    """``pipeline: dsm`` — views (or a synthetic scene) to a DSM with a report."""
+
+    pipeline: Literal["dsm"]
+    name: str = "dsm"
+    input: InputSpec
+    grid: GridSpec = GridSpec()
+    match: MatchSpec = MatchSpec()
+    cluster: ClusterSpec = ClusterSpec()
+    output: OutputSpec = OutputSpec()
+    orient: Optional[OrientSpec] = Field(None, description="orient the images first (GCPs, reference DEM); the DSM uses the corrected RPCs")
+
+
+def run_dsm(
+    recipe: DSMRecipe, out: Path, cluster: ClusterConfig | None = None, overwrite: bool = False, plan=None
+) -> dict:
+    """Views (or a synthetic scene) -> DSM products and metrics.
+
+    ``plan`` (:func:`tiledsm.plan.plan_recipe`) carries the opened views, tie
+    points and lazy DSM; without it (or for a synthetic scene, made here
+    first) the run plans itself. Its warnings, and a low completeness, go
+    to ``metrics.json`` (``warnings``).
+    """
+    from tiledsm.plan import LOW_COMPLETENESS, Limits, plan_recipe
+
+    cluster = cluster or recipe.cluster.config()
+    t_start = time.perf_counter()
+    inp = recipe.input
+    truth_mask = None
+    orient_doc = None
+    if recipe.orient is not None and inp.images is not None:
+        # orient first; the DSM uses the corrected copies (a plan made on the original images is stale)
+        from tiledsm.orient.spec import orient_for_recipe
+
+        images, rpcs, orient_doc = orient_for_recipe(inp.images, inp.rpcs, recipe.orient, out / "orient", overwrite=overwrite)
+        recipe = recipe.model_copy(update={"input": inp.model_copy(update={"images": images, "rpcs": rpcs})})
+        inp, plan = recipe.input, None
+    limits = plan.limits if plan is not None else Limits()
+    if inp.synth is not None:
+        from tiledsm.synth import make_scene
+
+        sy = inp.synth
+        log.info("making synthetic scene %s", sy.model_dump())
+        scene = make_scene(out / "scene", size=sy.size, gsd=sy.gsd, bh=sy.bh, seed=sy.seed, views=sy.views, event=False)
+        truth_mask = getattr(scene, "visible_mask", None)
+        views_recipe = recipe.model_copy(update={"input": InputSpec(
+            images=[str(p) for p in scene.views], reference=str(scene.truth_dsm))})
+        plan = plan_recipe(views_recipe, out, cluster, overwrite=overwrite, limits=limits)
+    elif plan is None or plan.prepared is None:
+        plan = plan_recipe(recipe, out, cluster, overwrite=overwrite, limits=limits)
+    prep = plan.prepared
+    reference, report = prep.reference, prep.report
+    timings = write_dsm_products(
+        prep.ds, out, cluster=cluster, cog=recipe.output.cog, quicklook=recipe.output.quicklook, overwrite=overwrite
+    )
+    metrics: dict = {"pipeline": "dsm", "report": report, "timings": timings}
+    if orient_doc is not None:
+        metrics["orient"] = orient_doc
+    from tiledsm.io import open_product
+
+    height = open_product(out / "dsm.zarr")["height"]
+    # lazy: the client never holds the whole DSM for this
+    metrics["completeness"] = float(np.isfinite(height.data).mean().compute())
+    metrics["completeness_in_footprint"] = footprint_completeness(height, prep.views, prep.h_range)
+    warnings = list(plan.warnings)
+    if metrics["completeness_in_footprint"] < LOW_COMPLETENESS:
+        warnings.append(
+            f"low completeness: {metrics['completeness_in_footprint']:.0%} of the cells seen by every view have a "
+            f"height (expected >= {LOW_COMPLETENESS:.0%}; check the height range and the images' overlap)"
+        )
+        log.warning(warnings[-1])
+    if reference:
+        # chunk by chunk: the client never holds the whole DSM or reference
+        from tiledsm.compare.accuracy import reference_accuracy
+
+        metrics["reference"] = str(reference)
+        metrics["vs_reference"], error = reference_accuracy(height, reference, chunks=grid_chunk(height))
+        if recipe.output.quicklook:
+            from tiledsm.quicklook import quicklook
+
+            r0, r1, c0, c1 = error.attrs["window"]
+            quicklook(error, out / "dsm_error.png", kind="difference", title="DSM - reference (m)", dsm=height[r0:r1, c0:c1])
+        if truth_mask is not None:
+            metrics["vs_reference_visible"], _ = reference_accuracy(
+                height, reference, truth_mask, chunks=grid_chunk(height)
+            )
+    metrics["warnings"] = warnings
+    metrics["timings"]["total_s"] = time.perf_counter() - t_start
+    metrics["output_mpx_per_s"] = height.size / 1e6 / max(timings["match_s"], 1e-9)
+    write_json(metrics, out / "metrics.json")
+    log.info("metrics: %s", json.dumps(metrics))
+    return metrics
