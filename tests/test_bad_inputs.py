@@ -170,6 +170,7 @@ CASES = [
     Case("dsm-geoid-missing", dsm("--geoid", "nope.gtx"), lambda f: ["nope.gtx"]),
     Case("dsm-geoid-elsewhere", dsm("--geoid", "geoid_elsewhere"), lambda f: ["geoid_elsewhere.gtx"]),
     Case("dsm-workers-zero", dsm("--workers", "0"), lambda f: ["--workers"]),
+    Case("dsm-memory-per-worker-not-a-size", dsm("--memory-per-worker", "lots"), lambda f: ["--memory-per-worker", "lots"]),
     # --- sr
     Case("sr-missing-input", lambda f, out: ["sr", str(f["root"] / "nope.tif"), str(out / "sr.tif")], lambda f: ["nope.tif"]),
     Case("sr-scale-without-weights", lambda f, out: ["sr", str(f["v0"]), str(out / "sr.tif"), "--model", "srcnn", "--scale", "3"],

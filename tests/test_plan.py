@@ -512,6 +512,7 @@ EMITTERS = {
     "tiledsm/io/lock.py:_refuse_or_take_over": ("dsm", "run", "compare", "ortho", "orient"),
     "tiledsm/plan/core.py:check_workers": ("dsm", "run", "compare", "sr"),
     "tiledsm/plan/core.py:FieldNames": ("dsm",),
+    "tiledsm/cluster.py:compute_context": ("dsm", "run", "sr", "compare", "ortho", "orient"),
 }
 OPTION = re.compile(r"(?<![\w-])--[a-z][a-z-]*")
 

@@ -31,6 +31,7 @@ __all__ = [
     "job_script",
     "shared_cluster",
     "single_threaded_libraries",
+    "worker_memory_budget",
 ]
 
 #: batch systems and their dask-jobqueue cluster class
@@ -147,7 +148,10 @@ class ClusterConfig:
     workers : int or None
         Number of local worker processes (default: number of cores).
     memory_limit : str
-        Per-worker memory limit of a local cluster (dask syntax).
+        Memory of each worker (dask syntax, e.g. ``"4GiB"``): the limit at
+        which a local cluster's nanny stops a worker, and the budget the
+        plan sizes chunks for (:func:`worker_memory_budget`). ``"auto"``:
+        the machine's memory divided among the local workers.
     progress : bool
         Show a progress bar.
     jobqueue : JobQueueConfig or None
@@ -202,12 +206,58 @@ def single_threaded_libraries() -> None:
         sys.modules["torch"].set_num_threads(1)
 
 
+def worker_memory_budget(config: ClusterConfig | None) -> int | None:
+    """Bytes one worker may use: ``memory_limit`` when given, else (``"auto"``)
+    the machine's memory divided among the local workers; a batch job's
+    memory divided among its worker processes; in-process (synchronous)
+    runs the machine's memory; ``None`` for an existing cluster whose
+    workers' limits were set elsewhere and not given."""
+    import psutil
+    from dask.utils import parse_bytes
+
+    config = config or ClusterConfig()
+    if config.jobqueue is not None:
+        jq = config.jobqueue
+        return int(parse_bytes(jq.memory) / (jq.processes or jq.cores))
+    if config.memory_limit != "auto":
+        return int(parse_bytes(config.memory_limit))
+    if config.scheduler == "synchronous":
+        return int(psutil.virtual_memory().total)
+    if config.scheduler is not None:
+        return None
+    return int(psutil.virtual_memory().total / (config.workers or os.cpu_count() or 1))
+
+
 @contextlib.contextmanager
 def compute_context(config: ClusterConfig = ClusterConfig()) -> Iterator[object | None]:
     """Context in which ``dask.compute`` runs on the configured scheduler.
 
     Yields the :class:`distributed.Client` (or ``None`` when synchronous).
+    A task that killed its worker every time it was tried (dask's
+    ``KilledWorker``: the nanny stops a worker at its memory limit) ends
+    the run with :class:`~tiledsm.errors.WorkerMemoryError`, naming the
+    task and the limit, instead of a scheduler traceback.
     """
+    try:
+        with _compute_context(config) as client:
+            yield client
+    except Exception as exc:
+        if type(exc).__name__ != "KilledWorker":
+            raise
+        from dask.utils import format_bytes
+
+        from tiledsm.errors import WorkerMemoryError
+
+        budget = worker_memory_budget(config)
+        limit = f"{format_bytes(budget)} per worker" if budget else "the workers' own limit"
+        raise WorkerMemoryError(
+            f"a worker died each time it ran task {exc.args[0] if exc.args else '?'} (memory limit: {limit}); "
+            "most likely it ran out of memory: use smaller chunks, fewer --workers, or a larger --memory-per-worker"
+        ) from None
+
+
+@contextlib.contextmanager
+def _compute_context(config: ClusterConfig) -> Iterator[object | None]:
     if config.scheduler == "synchronous":
         with dask.config.set(scheduler="synchronous"):
             yield None

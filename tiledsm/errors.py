@@ -15,6 +15,7 @@ __all__ = [
     "MatchingError",
     "FingerprintMismatchError",
     "OutputLockedError",
+    "WorkerMemoryError",
     "InvalidOptionError",
     "RunTooLargeError",
 ]
@@ -77,3 +78,8 @@ class RunTooLargeError(GridError):
     of its grid, :class:`tiledsm.plan.Limits`) before anything is computed;
     the message gives the sizes, the limits and how to lift them
     (``--allow-large``)."""
+
+
+class WorkerMemoryError(TiledsmError):
+    """A worker died again and again running one task: it was stopped at
+    its memory limit (the usual cause), or the machine killed it."""

@@ -112,6 +112,7 @@ def run_recipe(
     out = Path(out_dir).expanduser().resolve()
     if plan is None:
         plan = plan_recipe(recipe, out, cluster, overwrite=overwrite, limits=limits or Limits())
+    recipe = plan.recipe or recipe  # e.g. a chunk side the plan chose to fit a worker's memory
     out.mkdir(parents=True, exist_ok=True)
     with OutputLock(out):
         handler = setup_log(out)

@@ -24,7 +24,7 @@ from tiledsm.errors import RecipeError
 
 __all__ = [
     "StrictModel", "SynthInput", "InputSpec", "GridSpec", "MatchSpec", "JobQueueSpec", "ClusterSpec", "OutputSpec",
-    "grid_from_spec", "dsm_params", "load_cluster", "read_recipe", "format_errors", "dump_resolved",
+    "grid_from_spec", "dsm_params", "check_size", "load_cluster", "read_recipe", "format_errors", "dump_resolved",
 ]
 
 
@@ -149,6 +149,23 @@ def dsm_params(grid: GridSpec, match: MatchSpec, *, resolution: float | None = N
     )
 
 
+def check_size(value: str, name: str, error: type[Exception] | None = None) -> int:
+    """Bytes of a memory size in dask's syntax (``4GiB``, ``500MB``); an
+    error naming ``name`` otherwise (:class:`~tiledsm.errors.InvalidOptionError`
+    by default)."""
+    from dask.utils import parse_bytes
+
+    from tiledsm.errors import InvalidOptionError
+
+    try:
+        n = int(parse_bytes(value))
+    except (ValueError, TypeError):
+        n = 0
+    if n <= 0:
+        raise (error or InvalidOptionError)(f"{name}: {value!r} is not a memory size (e.g. 4GiB, 500MB)")
+    return n
+
+
 class JobQueueSpec(StrictModel):
     """Resources of one batch job (see :class:`tiledsm.cluster.JobQueueConfig`)."""
 
@@ -177,7 +194,16 @@ class ClusterSpec(StrictModel):
     address: Optional[str] = Field(None, description="kind address: tcp://host:port")
     scheduler: Optional[str] = Field(None, description="None: local cluster; 'synchronous'; or tcp://host:port")
     workers: Optional[int] = Field(None, ge=1)
+    memory_per_worker: Optional[str] = Field(
+        None, description="memory of each worker, e.g. 4GiB (kind local/address; batch jobs: jobqueue.memory)")
     jobqueue: Optional[JobQueueSpec] = None
+
+    @field_validator("memory_per_worker")
+    @classmethod
+    def _size(cls, value: Optional[str]) -> Optional[str]:
+        if value is not None:
+            check_size(value, "memory_per_worker", ValueError)
+        return value
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -192,6 +218,8 @@ class ClusterSpec(StrictModel):
                 raise ValueError(f"a {self.kind} cluster sizes itself from 'jobqueue' (cores, processes, jobs): drop 'workers'")
         elif self.jobqueue is not None:
             raise ValueError(f"'jobqueue' is for kind slurm, pbs or sge, not {self.kind}")
+        if self.kind in ("slurm", "pbs", "sge") and self.memory_per_worker is not None:
+            raise ValueError(f"a {self.kind} worker's memory is jobqueue.memory / processes: drop 'memory_per_worker'")
         return self
 
     def config(self, progress: bool = True):
@@ -202,7 +230,8 @@ class ClusterSpec(StrictModel):
             jq = (self.jobqueue or JobQueueSpec()).model_dump()
             jq["job_extra_directives"] = tuple(jq["job_extra_directives"])
             return ClusterConfig(jobqueue=JobQueueConfig(kind=self.kind, **jq), progress=progress)
-        return ClusterConfig(scheduler=self.address or self.scheduler, workers=self.workers, progress=progress)
+        return ClusterConfig(scheduler=self.address or self.scheduler, workers=self.workers,
+                             memory_limit=self.memory_per_worker or "auto", progress=progress)
 
 
 def load_cluster(path: str | Path) -> ClusterSpec:

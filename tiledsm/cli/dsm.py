@@ -23,7 +23,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--crs", default=None, help="output CRS (default: UTM zone of the scene centre)")
     p.add_argument("--resolution", type=float, default=None, help="cell size, metres (default: GSD)")
     p.add_argument("--bounds", type=float, nargs=4, default=None, metavar=("XMIN", "YMIN", "XMAX", "YMAX"))
-    p.add_argument("--chunk", type=int, default=512, help="chunk side, cells")
+    p.add_argument("--chunk", type=int, default=None,
+                   help="chunk side, cells (default 512, or smaller when a worker's memory needs it)")
     p.add_argument("--levels", type=int, default=None, help="pyramid levels (default: from the height range)")
     p.add_argument("--height-range", type=float, nargs=2, default=None, metavar=("HMIN", "HMAX"), help="ellipsoidal metres; default: from tie points")
     p.add_argument("--reference", default=None, help="reference DSM for metrics (same vertical datum as the output)")

@@ -20,6 +20,11 @@ def add_cluster_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--scheduler", default=None, help="dask scheduler address (tcp://host:8786) or 'synchronous'; default: a local cluster")
     p.add_argument("--workers", type=int, default=None, help="local workers (one single-threaded process each, >= 1); default: one per core")
+    p.add_argument(
+        "--memory-per-worker", default=None, metavar="SIZE",
+        help="memory of each worker, e.g. 4GiB: a local worker is stopped beyond it, and the plan sizes chunks "
+        "for it (default: the machine's memory divided among the local workers)",
+    )
     p.add_argument("--no-progress", action="store_true", help="do not show a progress bar")
 
 
@@ -50,6 +55,8 @@ def add_plan_arguments(p: argparse.ArgumentParser, large: bool = True) -> None:
 def cluster_config(args: argparse.Namespace, recipe_cluster=None):
     """The :class:`~tiledsm.cluster.ClusterConfig` of the options (falling
     back on a recipe's ``cluster`` section); refuses ``--workers`` < 1."""
+    import dataclasses
+
     from tiledsm.cluster import ClusterConfig
     from tiledsm.plan import check_workers
 
@@ -59,8 +66,14 @@ def cluster_config(args: argparse.Namespace, recipe_cluster=None):
 
         recipe_cluster = load_cluster(args.cluster)
     progress = not args.no_progress
+    memory = getattr(args, "memory_per_worker", None)
+    if memory is not None:
+        from tiledsm.recipes import check_size
+
+        check_size(memory, "--memory-per-worker")
     if args.scheduler is None and args.workers is None and recipe_cluster is not None:
-        return recipe_cluster.config(progress)
+        config = recipe_cluster.config(progress)
+        return dataclasses.replace(config, memory_limit=memory) if memory else config
     if recipe_cluster is not None and recipe_cluster.kind in ("slurm", "pbs", "sge"):
         from tiledsm.errors import InvalidOptionError
 
@@ -72,6 +85,7 @@ def cluster_config(args: argparse.Namespace, recipe_cluster=None):
     return ClusterConfig(
         scheduler=args.scheduler or base.scheduler,
         workers=args.workers if args.workers is not None else base.workers,
+        memory_limit=memory or base.memory_limit,
         progress=progress,
     )
 

@@ -146,6 +146,10 @@ class Plan:
         The DSM stage's prepared inputs (``dsm`` pipeline only).
     product : object or None
         The lazy product the run computes, when the plan built it (``sr``).
+    recipe : object or None
+        The recipe as the run must use it when the plan changed it (a chunk
+        side chosen to fit a worker's memory); its resolved form is what
+        ``recipe.resolved.yaml`` records.
     """
 
     command: str
@@ -164,6 +168,7 @@ class Plan:
     limits: Limits = field(default_factory=Limits)
     prepared: PreparedDSM | None = field(default=None, repr=False)
     product: Any = field(default=None, repr=False)
+    recipe: Any = field(default=None, repr=False)
 
     def warn(self, message: str) -> None:
         """Add a warning (the command prints it; a run logs it in ``run.log``
@@ -252,29 +257,14 @@ def describe_cluster(config) -> str:
             + (f", queue {jq.queue}" if jq.queue else "") + (f", account {jq.account}" if jq.account else "")
         )
     if config is None or config.scheduler is None:
-        import psutil
+        from tiledsm.cluster import worker_memory_budget
 
         n = (config.workers if config is not None else None) or os.cpu_count() or 1
-        limit = psutil.virtual_memory().total / n
+        limit = worker_memory_budget(config)
         return f"local cluster: {n} single-threaded worker processes, memory limit ~{limit / GIB:.1f} GiB each"
     if config.scheduler == "synchronous":
         return "in this process (synchronous scheduler)"
     return f"existing cluster at {config.scheduler} (not contacted by the plan)"
-
-
-def memory_warning(plan: Plan, config) -> None:
-    """Warn when the estimated peak exceeds a local worker's memory limit."""
-    if plan.memory is None or (config is not None and config.scheduler is not None):
-        return
-    import psutil
-
-    n = (config.workers if config is not None else None) or os.cpu_count() or 1
-    limit = psutil.virtual_memory().total / n
-    if plan.memory.total > limit:
-        plan.warn(
-            f"estimated peak per worker {plan.memory.total / GIB:.1f} GiB exceeds the memory limit "
-            f"{limit / GIB:.1f} GiB of each of {n} local workers: use a smaller chunk or fewer workers"
-        )
 
 
 def new_plan(command: str, out: str | os.PathLike, cluster=None, *, limits: Limits = Limits(),

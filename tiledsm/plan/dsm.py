@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 from pathlib import Path
 from typing import Sequence
@@ -14,6 +15,7 @@ from tiledsm.errors import (
     NoOverlapError,
     TiledsmError,
 )
+from tiledsm.cluster import worker_memory_budget
 from tiledsm.plan.core import (
     MOSTLY_OUTSIDE,
     RECIPE_NAMES,
@@ -24,7 +26,6 @@ from tiledsm.plan.core import (
     PreparedDSM,
     existing_file,
     format_bounds,
-    memory_warning,
     overlap_fraction,
     raster_header,
     readable_raster,
@@ -228,14 +229,27 @@ def plan_dsm(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names
     if geoid:
         _check_geoid_covers(geoid, grid, names.geoid)
         plan.inputs.append(InputInfo(names.geoid, geoid))
-    with _naming(images):
-        ds = dsm_from_views(views, grid, h_range, params)
-    if geoid:
-        ds = heights_above_geoid(ds, geoid)
-        report["vertical_datum"] = ds.attrs["vertical_datum"]
-    plan.tasks = len(ds.__dask_graph__())
-    plan.levels, plan.memory = dsm_levels(views, grid, h_range, int(ds.attrs["levels"]), params)
-    memory_warning(plan, cluster)
+
+    def build(grid, params):
+        with _naming(images):
+            ds = dsm_from_views(views, grid, h_range, params)
+        if geoid:
+            ds = heights_above_geoid(ds, geoid)
+            report["vertical_datum"] = ds.attrs["vertical_datum"]
+        plan.tasks = len(ds.__dask_graph__())
+        plan.levels, plan.memory = dsm_levels(views, grid, h_range, int(ds.attrs["levels"]), params)
+        return ds
+
+    ds = build(grid, params)
+    budget = worker_memory_budget(cluster)
+    if budget is not None and plan.memory.total > budget:
+        chunk = _chunk_for_budget(plan, views, grid, h_range, int(ds.attrs["levels"]), params, budget,
+                                  "chunk" in spec.model_fields_set, names)
+        grid, params = dataclasses.replace(grid, chunk=chunk), dataclasses.replace(params, chunk=chunk)
+        report["grid"]["chunk"] = chunk
+        plan.grid = grid_text(grid)
+        ds = build(grid, params)
+        plan.recipe = recipe.model_copy(update={"grid": spec.model_copy(update={"chunk": chunk})})
     plan.reuse, plan.withdraw = dsm_reuse(out, grid, json.loads(ds.attrs["fingerprint"]), overwrite)
     plan.prepared = PreparedDSM(images, rpcs, reference, views, grid, h_range, ds, report)
     return plan
@@ -290,3 +304,37 @@ def _check_reference(plan: Plan, path: str, grid, name: str) -> None:
     )
 
 
+#: chunk sides tried, in order, when the default chunk does not fit a worker's memory
+_SMALLER_CHUNKS = (384, 256, 192, 128, 96, 64)
+
+
+def _chunk_for_budget(plan: Plan, views, grid, h_range, levels: int, params, budget: int, explicit: bool,
+                      names: FieldNames) -> int:
+    """The largest chunk side whose estimated worker peak fits ``budget``
+    bytes, when the chunk was not given (``explicit``); an error naming the
+    chunk option otherwise, or when no chunk fits."""
+    from dask.utils import format_bytes
+
+    from tiledsm.dsm import min_chunk
+
+    need = plan.memory.total
+    remedy = "fewer workers, or more memory per worker (--memory-per-worker / cluster.memory_per_worker)"
+    if explicit:
+        raise InvalidOptionError(
+            f"{names.chunk} {grid.chunk}: a worker would need ~{format_bytes(need)} (estimated), beyond its memory "
+            f"{format_bytes(budget)}; use a smaller {names.chunk} (or leave it out to have one chosen), {remedy}")
+    tried = grid.chunk
+    for chunk in _SMALLER_CHUNKS:
+        if chunk >= grid.chunk or chunk < min_chunk(params):
+            continue
+        tried = chunk
+        _, memory = dsm_levels(views, dataclasses.replace(grid, chunk=chunk), h_range, levels,
+                               dataclasses.replace(params, chunk=chunk))
+        if memory.total <= budget:
+            plan.notes.append(f"chunks of {chunk} chosen to fit a worker's memory {format_bytes(budget)} "
+                              f"(chunks of {grid.chunk} would need ~{format_bytes(need)})")
+            return chunk
+    raise InvalidOptionError(
+        f"{names.chunk}: even the smallest chunk tried ({tried}) needs more than a "
+        f"worker's memory {format_bytes(budget)} (estimated; the height range's candidates set it): narrow "
+        f"{names.height_range}, or use {remedy}")
