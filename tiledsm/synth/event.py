@@ -2,8 +2,11 @@
 
 The displacement is a straight fault (a vertical plane through
 ``fault_point`` with strike ``strike_deg``) whose two blocks move rigidly
-by ``+-slip/2`` along the strike and ``+-throw/2`` vertically, plus a smooth
-Gaussian uplift (vertical only).
+along the strike and vertically -- by ``+-slip/2`` and ``+-throw/2``
+(``still="none"``: both blocks move, nothing is still), or the right block
+by ``slip`` and ``throw`` while the left one stays (``still="left"``: the
+usual real case, where far-field ground on one side is a stable frame) --
+plus a smooth Gaussian uplift (vertical only).
 
 Convention
 ----------
@@ -27,7 +30,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["EventParams", "displacement", "evaluate_post"]
+__all__ = ["EventParams", "BLOCK_SHARES", "displacement", "evaluate_post"]
+
+#: share of the slip and throw moved by the (right, left) block, per ``EventParams.still``
+BLOCK_SHARES = {"none": (0.5, -0.5), "left": (1.0, 0.0)}
 
 
 @dataclass(frozen=True)
@@ -52,6 +58,10 @@ class EventParams:
         Its centre, metres east/north of the scene origin.
     uplift_sigma : float
         Its standard deviation, metres.
+    still : {"none", "left"}
+        ``"none"``: the blocks move by ``+-slip/2`` and ``+-throw/2``;
+        ``"left"``: the left block stays, the right one moves by ``slip``
+        and ``throw`` (the uplift is added everywhere in both cases).
     """
 
     fault_point: tuple[float, float] = (30.0, -20.0)
@@ -61,15 +71,26 @@ class EventParams:
     uplift: float = 1.0
     uplift_center: tuple[float, float] = (-60.0, 80.0)
     uplift_sigma: float = 120.0
+    still: str = "none"
+
+    def __post_init__(self) -> None:
+        if self.still not in BLOCK_SHARES:
+            raise ValueError(f"still: expected one of {sorted(BLOCK_SHARES)}, got {self.still!r}")
 
     @classmethod
-    def for_extent(cls, extent: float) -> "EventParams":
-        """Defaults scaled to a scene ``extent`` metres wide."""
-        return cls(
+    def for_extent(cls, extent: float, **kw) -> "EventParams":
+        """Defaults scaled to a scene ``extent`` metres wide (``kw`` overrides)."""
+        base = dict(
             fault_point=(0.06 * extent, -0.04 * extent),
             uplift_center=(-0.12 * extent, 0.16 * extent),
             uplift_sigma=0.25 * extent,
         )
+        return cls(**{**base, **kw})
+
+    @property
+    def shares(self) -> tuple[float, float]:
+        """Share of ``slip`` and ``throw`` moved by the (right, left) block."""
+        return BLOCK_SHARES[self.still]
 
     @property
     def strike(self) -> np.ndarray:
@@ -85,12 +106,12 @@ class EventParams:
     @property
     def max_vertical(self) -> float:
         """Bound on ``|dz|``, metres."""
-        return 0.5 * abs(self.throw) + abs(self.uplift)
+        return max(abs(v) for v in self.shares) * abs(self.throw) + abs(self.uplift)
 
     @property
     def max_horizontal(self) -> float:
         """Bound on ``|(dx, dy)|``, metres."""
-        return 0.5 * abs(self.slip)
+        return max(abs(v) for v in self.shares) * abs(self.slip)
 
 
 def displacement(event: EventParams, x: np.ndarray, y: np.ndarray):
@@ -107,7 +128,7 @@ def displacement(event: EventParams, x: np.ndarray, y: np.ndarray):
     y = np.asarray(y, np.float64)[:, None]
     nx, ny = event.normal
     side = (x - event.fault_point[0]) * nx + (y - event.fault_point[1]) * ny >= 0
-    sgn = np.where(side, 0.5, -0.5)
+    sgn = np.where(side, *event.shares)
     sx, sy = event.strike
     dx = (sgn * event.slip * sx).astype(np.float32)
     dy = (sgn * event.slip * sy).astype(np.float32)
@@ -122,9 +143,9 @@ def evaluate_post(world, event: EventParams, x: np.ndarray, y: np.ndarray):
     x = np.asarray(x, np.float64)
     y = np.asarray(y, np.float64)
     side, dx, dy, dz = displacement(event, x, y)
-    sx, sy = 0.5 * event.slip * event.strike
-    h_r, a_r, l_r = world.evaluate(x - sx, y - sy)
-    h_l, a_l, l_l = world.evaluate(x + sx, y + sy)
+    right, left = (share * event.slip * event.strike for share in event.shares)
+    h_r, a_r, l_r = world.evaluate(x - right[0], y - right[1])
+    h_l, a_l, l_l = world.evaluate(x - left[0], y - left[1])
     h = np.where(side, h_r, h_l) + dz
     a = np.where(side, a_r, a_l)
     lab = np.where(side, l_r, l_l)
