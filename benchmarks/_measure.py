@@ -329,3 +329,16 @@ def _kill_tree(root: int) -> None:
             os.kill(pid, 9)
         except (ProcessLookupError, PermissionError):
             pass
+
+
+def run_tiledsm(*args: str) -> float:
+    """Run ``tiledsm ARGS --no-progress`` as a user does (a subprocess of this
+    interpreter); seconds of wall time. Exits with its stderr when it fails."""
+    import sys
+
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, "-m", "tiledsm", *args, "--no-progress"], capture_output=True, text=True)
+    if r.returncode != 0:
+        raise SystemExit(f"tiledsm {' '.join(args)} failed:\n{r.stderr[-3000:]}")
+    return time.perf_counter() - t0
+

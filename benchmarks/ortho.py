@@ -25,7 +25,6 @@ import argparse
 import datetime as _dt
 import json
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -35,15 +34,8 @@ import rasterio
 
 REPO = Path(__file__).resolve().parent.parent
 DATA = Path(os.environ.get("TILEDSM_SHARED_DATA", REPO.parent / "shared" / "data"))
-TILEDSM = [sys.executable, "-m", "tiledsm"]
-
-
-def _run(*args: str) -> float:
-    t0 = time.perf_counter()
-    r = subprocess.run([*TILEDSM, *args, "--no-progress"], capture_output=True, text=True)
-    if r.returncode != 0:
-        raise SystemExit(f"tiledsm {' '.join(args)} failed:\n{r.stderr[-3000:]}")
-    return time.perf_counter() - t0
+sys.path.insert(0, str(REPO))
+from benchmarks._measure import run_tiledsm as _run  # noqa: E402
 
 
 def tile_shifts(a: np.ndarray, b: np.ndarray, tile: int = 128, min_valid: float = 0.85) -> np.ndarray:

@@ -25,6 +25,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--views", type=int, choices=(2, 3), default=2, help="number of views (default 2)")
     p.add_argument("--event", action="store_true", help="also write the post-event scene and displacement truth")
+    p.add_argument("--still", choices=("none", "left"), default="none",
+                   help="with --event: 'left' keeps the block left of the fault still (the right one moves by the "
+                   "full slip and throw and carries the uplift); 'none' moves both by half (default)")
     p.add_argument("--chunk", type=int, default=512, help="tile edge for the dask computation (default 512)")
     p.add_argument("--psf-sigma", type=float, default=None, help="Gaussian PSF sigma, pixels (default 0.5)")
     p.add_argument("--noise", type=float, default=None, help="noise standard deviation, DN (default 3)")
@@ -72,8 +75,14 @@ def run(args: argparse.Namespace) -> int:
     if args.noise is not None:
         rad = replace(rad, noise=args.noise)
     tower = None if args.tower is None else TowerParams(height_m=args.tower, side_m=args.tower_side)
+    event_params = None
+    if args.event:
+        from tiledsm.synth import EventParams
+
+        event_params = EventParams.for_extent(args.size * args.gsd, still=args.still)
     info = make_scene(args.out, size=args.size, gsd=args.gsd, bh=args.bh, seed=args.seed, views=args.views,
-                      event=args.event, chunk=args.chunk, radiometry=rad, tower=tower, workers=args.workers)
+                      event=args.event, chunk=args.chunk, radiometry=rad, tower=tower, workers=args.workers,
+                      event_params=event_params)
     summary = {
         "out": str(info.out_dir),
         "views": [str(p) for p in info.views],

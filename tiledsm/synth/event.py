@@ -6,7 +6,8 @@ along the strike and vertically -- by ``+-slip/2`` and ``+-throw/2``
 (``still="none"``: both blocks move, nothing is still), or the right block
 by ``slip`` and ``throw`` while the left one stays (``still="left"``: the
 usual real case, where far-field ground on one side is a stable frame) --
-plus a smooth Gaussian uplift (vertical only).
+plus a smooth Gaussian uplift (vertical only; with ``still="left"`` on the
+right block only, so the left block is truly still).
 
 Convention
 ----------
@@ -58,10 +59,22 @@ class EventParams:
         Its centre, metres east/north of the scene origin.
     uplift_sigma : float
         Its standard deviation, metres.
+    post_aim_offset : (float, float)
+        Metres east/north by which the post-event cameras aim away from the
+        pre-event ones (each post view gets its own RPC): the post images
+        sample the ground at another sub-pixel phase, as a second orbit
+        does, so still ground carries the resampling errors moving ground
+        has. ``(0, 0)``: the post views share the pre views' cameras.
+    post_bh : float or None
+        Base-to-height ratio of the post-event pair (None: the pre pair's):
+        another base changes the sub-pixel phase of every disparity, so the
+        matching errors of still ground differ between the epochs, as they
+        do between two real acquisitions.
     still : {"none", "left"}
         ``"none"``: the blocks move by ``+-slip/2`` and ``+-throw/2``;
         ``"left"``: the left block stays, the right one moves by ``slip``
-        and ``throw`` (the uplift is added everywhere in both cases).
+        and ``throw`` and carries the uplift (``"none"``: the uplift is
+        added on both blocks).
     """
 
     fault_point: tuple[float, float] = (30.0, -20.0)
@@ -72,6 +85,8 @@ class EventParams:
     uplift_center: tuple[float, float] = (-60.0, 80.0)
     uplift_sigma: float = 120.0
     still: str = "none"
+    post_aim_offset: tuple[float, float] = (0.0, 0.0)
+    post_bh: float | None = None
 
     def __post_init__(self) -> None:
         if self.still not in BLOCK_SHARES:
@@ -79,12 +94,16 @@ class EventParams:
 
     @classmethod
     def for_extent(cls, extent: float, **kw) -> "EventParams":
-        """Defaults scaled to a scene ``extent`` metres wide (``kw`` overrides)."""
+        """Defaults scaled to a scene ``extent`` metres wide (``kw`` overrides).
+
+        With ``still="left"`` the uplift sits on the moving (right) block."""
         base = dict(
             fault_point=(0.06 * extent, -0.04 * extent),
             uplift_center=(-0.12 * extent, 0.16 * extent),
             uplift_sigma=0.25 * extent,
         )
+        if kw.get("still") == "left":
+            base.update(uplift_center=(0.22 * extent, -0.2 * extent), uplift_sigma=0.12 * extent)
         return cls(**{**base, **kw})
 
     @property
@@ -133,7 +152,10 @@ def displacement(event: EventParams, x: np.ndarray, y: np.ndarray):
     dx = (sgn * event.slip * sx).astype(np.float32)
     dy = (sgn * event.slip * sy).astype(np.float32)
     r2 = (x - event.uplift_center[0]) ** 2 + (y - event.uplift_center[1]) ** 2
-    dz = sgn * event.throw + event.uplift * np.exp(-0.5 * r2 / event.uplift_sigma**2)
+    uplift = event.uplift * np.exp(-0.5 * r2 / event.uplift_sigma**2)
+    if event.still == "left":
+        uplift = np.where(side, uplift, 0.0)
+    dz = sgn * event.throw + uplift
     return side, dx, dy, dz.astype(np.float32)
 
 

@@ -438,8 +438,17 @@ def make_scene(
             items.append((arr.astype(dtype), out / fname, raster_profile(dtype, (size, size), grid=grid)))
     mask_profile = raster_profile(np.uint8, (size, size), grid=grid)
 
-    def masks(ground, prefix):
-        vis = _visibility_array(ground, cameras, grid, origin, h_range, visibility, radiometry)
+    post_cameras, post_rpcs = cameras, rpcs
+    if ev is not None and (any(ev.post_aim_offset) or ev.post_bh is not None):
+        # another acquisition: aimed elsewhere and/or with its own base, so its pixels and its
+        # disparities sample the ground at other sub-pixel phases (own RPCs)
+        ox, oy = ev.post_aim_offset
+        pitches = view_pitches(ev.post_bh, views) if ev.post_bh is not None else [c.pitch_deg for c in cameras]
+        post_cameras = tuple(replace(c, e0=c.e0 + ox, n0=c.n0 + oy, pitch_deg=p) for c, p in zip(cameras, pitches))
+        post_rpcs = tuple(_fit_view(c, h_range, 100 + i)[0] for i, c in enumerate(post_cameras))
+
+    def masks(ground, prefix, cams=cameras):
+        vis = _visibility_array(ground, cams, grid, origin, h_range, visibility, radiometry)
         per_view = tuple(out / f"{prefix}visible_{i}.tif" for i in range(views))
         for i, p in enumerate(per_view):
             items.append((vis[i], p, mask_profile))
@@ -449,7 +458,7 @@ def make_scene(
 
     visible_mask, visible_views, edge_mask = masks(world, "")
     if ev is not None:
-        m = masks(ground_post, "post_")
+        m = masks(ground_post, "post_", post_cameras)
         event_info.update(post_visible=m[0], post_visible_views=m[1], post_edge=m[2])
     view_paths = []
     for i, (cam, rpc) in enumerate(zip(cameras, rpcs)):
@@ -459,7 +468,7 @@ def make_scene(
         items.append((img, p, raster_profile(np.uint16, (size, size), rpc=rpc)))
     if ev is not None:
         post_paths = []
-        for i, (cam, rpc) in enumerate(zip(cameras, rpcs)):
+        for i, (cam, rpc) in enumerate(zip(post_cameras, post_rpcs)):
             p = out / f"post_view_{i}.tif"
             post_paths.append(p)
             img = _image_array(ground_post, cam, origin, h_range, radiometry, seed, 100 + i, chunk)

@@ -17,6 +17,9 @@ run folder ``OUT``:
 - ``scene/`` (synthetic input): the scene of :func:`tiledsm.synth.make_scene`
   and ``stable_mask.geojson`` (the exclusion polygons written from the known
   event);
+- ``displacement/``, ``pre/ortho.*``, ``post/ortho.*`` (with a
+  ``displacement:`` section): east/north/up displacement with its
+  uncertainty (:mod:`tiledsm.workflows.displacement`);
 - ``orient/`` (with an ``orient:`` section, :class:`DeformationOrientSpec`):
   the bias-corrected images the DSMs are computed from and their
   ``orient.json`` (:mod:`tiledsm.orient`). By default pre- and post-event
@@ -66,6 +69,7 @@ from pydantic import Field, field_validator, model_validator
 from tiledsm.errors import NoOverlapError, TiledsmError
 from tiledsm.orient.spec import OrientSpec
 from tiledsm.recipes import ClusterSpec, GridSpec, MatchSpec, OutputSpec, SynthInput, StrictModel
+from tiledsm.workflows.displacement import DisplacementSpec
 from tiledsm.workflows.fault import (
     Fault,
     error_stats,
@@ -100,6 +104,17 @@ class EventSynthInput(SynthInput):
     with ``event=True``)."""
 
     event: bool = True
+    still: Literal["none", "left"] = Field(
+        "none",
+        description="'left': the block left of the fault stays still and the right one moves by the full slip and "
+        "throw and carries the uplift (the usual real case; the stable terrain is the still block); 'none': both "
+        "blocks move by half",
+    )
+    post_aim_offset: tuple[float, float] = Field(
+        (0.0, 0.0), description="metres east/north by which the post-event cameras aim away from the pre-event ones "
+        "(another orbit: post pixels sample the ground at another phase; own RPCs)")
+    post_bh: Optional[float] = Field(None, gt=0, description="base-to-height ratio of the post pair (another "
+                                     "acquisition; default: the pre pair's)")
     auto_stable_mask: bool = Field(
         True,
         description="write stable_mask.geojson from the known event (fault zone, uplift and the block holding "
@@ -204,6 +219,9 @@ class DeformationRecipe(StrictModel):
     cluster: ClusterSpec = ClusterSpec()
     output: OutputSpec = OutputSpec()
     orient: Optional[DeformationOrientSpec] = None
+    displacement: Optional[DisplacementSpec] = Field(
+        None, description="also measure the 3D displacement: orthos of both epochs correlated (dE, dN), dU read at the "
+        "displaced position, per-cell uncertainty (tiledsm.workflows.displacement)")
 
     @model_validator(mode="after")
     def _fault_source(self):
@@ -357,7 +375,12 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
         sy = inp.synth
         log.info("making synthetic event scene %s", sy.model_dump())
         t0 = time.perf_counter()
-        scene = make_scene(out / "scene", size=sy.size, gsd=sy.gsd, bh=sy.bh, seed=sy.seed, views=sy.views, event=True)
+        from tiledsm.synth import EventParams
+
+        scene = make_scene(out / "scene", size=sy.size, gsd=sy.gsd, bh=sy.bh, seed=sy.seed, views=sy.views, event=True,
+                           event_params=EventParams.for_extent(sy.size * sy.gsd, still=sy.still,
+                                                              post_aim_offset=tuple(sy.post_aim_offset),
+                                                              post_bh=sy.post_bh))
         timings["scene_s"] = time.perf_counter() - t0
         pre_in = ([str(p) for p in scene.views], None)
         post_in = ([str(p) for p in scene.event["post_views"]], None)
@@ -448,6 +471,16 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
             mt = throw_across(dh, distance, strip, sel)
             metrics["truth"]["throw"] = {"recovered": mt["throw"], "truth": tt["throw"], "error": mt["throw"] - tt["throw"]}
     timings["metrics_s"] = time.perf_counter() - t0
+    if recipe.displacement is not None:
+        from tiledsm.workflows.displacement import run_displacement
+
+        t0 = time.perf_counter()
+        with shared_cluster(cluster) as run_cluster:
+            metrics["displacement"] = run_displacement(
+                recipe.displacement, out, pre_images=pre_in[0], post_images=post_in[0], stable_mask=stable_mask,
+                fault=fault, scene=scene, cluster=run_cluster, cog=recipe.output.cog,
+                quicklook=recipe.output.quicklook)
+        timings["displacement_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     metrics["timings"] = timings
     write_json(metrics, out / "metrics.json")

@@ -110,7 +110,9 @@ def event_exclusion_polygons(event, origin, extent: float, uplift_tol: float = 0
     Excluded: a fault-zone strip (half width ``max(10 m, 5 % of extent)``),
     the disk where the uplift exceeds ``uplift_tol`` metres, and the whole
     block holding the uplift centre — so the stable terrain left is the
-    other block, which moved rigidly.
+    other block, which moved rigidly. With ``event.still == "left"`` the
+    excluded block is the right one (it holds all the motion): the stable
+    terrain is the still block.
 
     Returns
     -------
@@ -125,8 +127,10 @@ def event_exclusion_polygons(event, origin, extent: float, uplift_tol: float = 0
                                p - big * s + half * n, p - big * s - half * n], "fault zone")]
     uc = np.asarray(event.uplift_center, float)
     side_uplift = 1 if float(np.dot(uc - np.asarray(event.fault_point, float), n)) >= 0 else -1
+    if getattr(event, "still", "none") == "left":
+        side_uplift = 1  # the moving block, whatever the uplift's place
     kept = -side_uplift
-    if abs(event.uplift) > uplift_tol:
+    if abs(event.uplift) > uplift_tol and getattr(event, "still", "none") != "left":
         r = event.uplift_sigma * math.sqrt(2.0 * math.log(abs(event.uplift) / uplift_tol))
         c = uc + np.asarray(origin, float)
         t = np.linspace(0.0, 2 * math.pi, 65)

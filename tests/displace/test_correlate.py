@@ -1,0 +1,70 @@
+"""Sub-pixel correlation of windows against known Fourier shifts (an exact
+sub-pixel translation of a band-limited texture)."""
+
+import numpy as np
+import pytest
+from shift_cases import fourier_shift, texture
+
+from tiledsm.displace.correlate import CorrelationParams, correlate_windows, shifted_windows
+from tiledsm.errors import InvalidOptionError
+
+N = 384
+
+
+def centres(step=8, margin=64, n=N):
+    r, c = np.meshgrid(np.arange(margin, n - margin, step), np.arange(margin, n - margin, step), indexing="ij")
+    return r.ravel(), c.ravel()
+
+
+@pytest.mark.parametrize("dy, dx", [(0.0, 0.0), (0.3, -0.7), (2.45, -3.1), (-5.2, 6.8)])
+def test_known_sub_pixel_shifts_are_recovered(dy, dx):
+    rng = np.random.default_rng(5)
+    base = texture()
+    pre = base + rng.normal(size=base.shape) * 2
+    post = fourier_shift(base, dy, dx) + rng.normal(size=base.shape) * 2
+    r, c = centres()
+    out = correlate_windows(pre, post, r, c)
+    ey, ex = out[0] - dy, out[1] - dx
+    assert np.isfinite(ey).mean() > 0.99
+    # measured: |bias| <= 0.0023 px, NMAD 0.009-0.011 px (2 DN noise on a 200 DN texture)
+    assert abs(np.nanmean(ey)) < 0.004 and abs(np.nanmean(ex)) < 0.004
+    for e in (ey, ex):
+        assert 1.4826 * np.nanmedian(np.abs(e - np.nanmedian(e))) < 0.014
+    assert np.nanmedian(out[2]) > 0.95  # phase coherence of a pure shift
+
+
+def test_flat_windows_are_nan_not_noise():
+    rng = np.random.default_rng(0)
+    pre = 100 + rng.normal(size=(N, N)) * 0.2  # sensor noise only: std 0.2 DN < min_texture
+    post = 100 + rng.normal(size=(N, N)) * 0.2
+    r, c = centres()
+    out = correlate_windows(pre, post, r, c, CorrelationParams(min_texture=1.0))
+    assert np.isnan(out[0]).all() and np.isnan(out[1]).all()
+    assert (out[3] < 1.0).all()
+
+
+def test_windows_with_too_much_nodata_are_nan():
+    base = texture()
+    post = fourier_shift(base, 0.4, 0.2)
+    pre = base.copy()
+    pre[:, : N // 2] = np.nan
+    r, c = centres()
+    out = correlate_windows(pre, post, r, c)
+    left = c < N // 2 - 16  # windows wholly in the NaN half
+    right = c > N // 2 + 40
+    assert np.isnan(out[0][left]).all()
+    assert np.isfinite(out[0][right]).mean() > 0.99
+
+
+def test_lanczos_windows_at_an_integer_shift_are_the_pixels():
+    img = texture()
+    r, c = np.array([100, 150]), np.array([120, 60])
+    w = shifted_windows(img, r, c, np.array([2.0, -1.0]), np.array([0.0, 3.0]), 16)
+    np.testing.assert_allclose(w[0], img[102 - 8:102 + 8, 120 - 8:120 + 8], atol=1e-9)
+    np.testing.assert_allclose(w[1], img[149 - 8:149 + 8, 63 - 8:63 + 8], atol=1e-9)
+
+
+def test_bad_parameters_are_named():
+    for kw, needle in (({"window": 31}, "window"), ({"step": 3}, "step"), ({"frequency_cut": 0}, "frequency_cut")):
+        with pytest.raises(InvalidOptionError, match=needle):
+            CorrelationParams(**kw)

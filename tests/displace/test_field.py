@@ -1,0 +1,44 @@
+"""The tiled displacement field of two orthos: units and signs, tile
+invariance, grids that do not match."""
+
+import numpy as np
+import pytest
+from affine import Affine
+from shift_cases import fourier_shift, ortho, texture
+
+from tiledsm.displace import CorrelationParams, correlate_orthos
+from tiledsm.errors import GridError
+
+
+def test_metres_east_north_and_the_coarse_grid():
+    base = texture(n=256)
+    post = fourier_shift(base, 1.3, -2.2)  # 1.3 rows down (south), 2.2 columns left (west)
+    f = correlate_orthos(ortho(base), ortho(post), CorrelationParams(step=8), chunk=128).compute()
+    assert f.dE.shape == (32, 32)
+    assert f.rio.transform() == Affine(4.0, 0, 500000.0, 0, -4.0, 4000000.0)
+    inner = f.dE.values[4:-4, 4:-4]
+    assert np.nanmedian(inner) == pytest.approx(-2.2 * 0.5, abs=0.002)
+    assert np.nanmedian(f.dN.values[4:-4, 4:-4]) == pytest.approx(-1.3 * 0.5, abs=0.002)
+    assert np.isfinite(inner).all()
+
+
+@pytest.mark.slow
+def test_field_does_not_depend_on_the_chunking():
+    base = texture(n=1024, seed=3)
+    post = fourier_shift(base, 0.37, 1.6) + np.random.default_rng(1).normal(size=base.shape)
+    a, b = ortho(base), ortho(post)
+    f256 = correlate_orthos(a, b, chunk=256).compute()
+    f1024 = correlate_orthos(a, b, chunk=1024).compute()
+    for v in ("dE", "dN", "quality"):
+        np.testing.assert_array_equal(f256[v].values, f1024[v].values)
+    assert np.isfinite(f256.dE.values).mean() > 0.9
+
+
+def test_orthos_on_different_grids_are_refused():
+    base = texture(n=128)
+    with pytest.raises(GridError, match="not on the same grid.*transform"):
+        correlate_orthos(ortho(base), ortho(base, x0=500000.25))
+    with pytest.raises(GridError, match="shape"):
+        correlate_orthos(ortho(base), ortho(base[:120]))
+    with pytest.raises(GridError, match="CRS"):
+        correlate_orthos(ortho(base), ortho(base, crs="EPSG:32632"))

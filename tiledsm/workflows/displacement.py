@@ -1,0 +1,392 @@
+"""3D displacement of a deformation run: orthoimages of both epochs,
+their sub-pixel correlation, the frame correction on stable terrain,
+``dU`` read at the displaced position, per-cell uncertainty, offsets across
+the fault and, for a synthetic event, the errors against the truth.
+
+Run by :func:`tiledsm.workflows.deformation.run_deformation` when the
+recipe has a ``displacement:`` section (:class:`DisplacementSpec`), after
+both DSMs and ``dh``. Products (run folder ``OUT``):
+
+- ``pre/ortho.*``, ``post/ortho.*``: the first image of each pair
+  orthorectified on its own epoch's DSM (the cameras the DSM matched with);
+- ``displacement/displacement.zarr`` with ``dE``, ``dN``, ``dU``,
+  ``sigma_dE``, ``sigma_dN``, ``sigma_dU`` (metres east/north/up, NaN where
+  unknown), ``quality`` and ``slope``; the COGs ``dE.tif`` ... ``sigma_dU.tif``;
+  ``displacement.png`` (arrows over hillshade, ``dU``) and, with a fault,
+  ``profiles.png``;
+- ``scene/true_dE.tif``, ``true_dN.tif``, ``true_dU.tif`` (synthetic event):
+  the truth on the displacement grid, in the frame of the stable terrain.
+
+Frame: the correlation measures the post ortho against the pre ortho; a
+plane (and optional row stripes) fitted on the stable terrain is removed
+(:mod:`tiledsm.displace.correct`), so ``dE``/``dN`` are relative to that
+terrain, like ``dh`` after co-registration. ``dU = post_c(p + d) - pre(p)``
+with ``post_c = pre + dh`` the co-registered post DSM
+(:mod:`tiledsm.displace.vertical`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Literal, Optional
+
+import numpy as np
+from pydantic import Field
+
+from tiledsm.recipes import StrictModel
+
+__all__ = ["DisplacementSpec", "run_displacement"]
+
+log = logging.getLogger("tiledsm.workflows.displacement")
+
+COMPONENTS = ("dE", "dN", "dU")
+
+
+class DisplacementSpec(StrictModel):
+    """``displacement:`` of a deformation recipe (pixels of the ortho grid,
+    which is the DSM grid)."""
+
+    window: int = Field(32, ge=8, description="correlation window side, pixels (even)")
+    step: int = Field(8, ge=2, description="spacing of the displacement cells, pixels (even; <= window/2)")
+    search: int = Field(8, ge=1, description="largest displacement looked for, pixels per axis")
+    frequency_cut: float = Field(0.6, gt=0, le=1, description="share of Nyquist used by the sub-pixel phase fit")
+    min_quality: float = Field(0.5, ge=0, le=1, description="phase coherence under which a cell is NaN")
+    min_texture: float = Field(1.0, ge=0, description="std of the pre window (DN) under which a cell is NaN")
+    plane: bool = Field(True, description="remove a plane per component fitted on stable terrain (else its median)")
+    stripes: Optional[Literal["rows"]] = Field(None, description="also remove along-row stripes (attitude jitter)")
+    kernel: str = Field("cs", description="ortho interpolation kernel: nn, bl, cr, cs")
+    view: int = Field(0, ge=0, description="which image of each pair is orthorectified (index in the pair)")
+    chunk: int = Field(1024, ge=64, description="ortho pixels per chunk side for the correlation")
+
+    def correlation(self):
+        from tiledsm.displace import CorrelationParams
+
+        return CorrelationParams(window=self.window, step=self.step, search=self.search,
+                                 frequency_cut=self.frequency_cut, min_quality=self.min_quality,
+                                 min_texture=self.min_texture)
+
+
+def _orthos(spec: DisplacementSpec, pre_image: str, post_image: str, out: Path, cluster, cog: bool, quicklook: bool):
+    """Both orthos, each on its own epoch's DSM store; returns the two lazy arrays."""
+    from tiledsm.io import open_product
+    from tiledsm.ortho.rectify import OrthoParams, orthorectify
+    from tiledsm.ortho.stage import open_dsm, open_source, write_ortho_products
+
+    reports = {}
+    for name, image in (("pre", pre_image), ("post", post_image)):
+        dsm = out / name / "dsm.zarr"
+        ortho = orthorectify(open_source(image, dsm=dsm), open_dsm(dsm), OrthoParams(kernel=spec.kernel))
+        reports[name] = write_ortho_products(ortho, out / name, cluster=cluster, cog=cog, quicklook=quicklook)
+        log.info("%s-event ortho of %s: %.1f %% valid", name, image, 100 * reports[name].get("valid_share", np.nan))
+    return open_product(out / "pre" / "ortho.zarr"), open_product(out / "post" / "ortho.zarr"), reports
+
+
+def _block_mean(a: np.ndarray, step: int, shape: tuple[int, int]) -> np.ndarray:
+    ny, nx = shape
+    return a[: ny * step, : nx * step].reshape(ny, step, nx, step).mean(axis=(1, 3))
+
+
+def _strip_cells(distance: np.ndarray, strip: tuple[float, float], valid: np.ndarray):
+    a = np.abs(distance)
+    band = valid & (a >= strip[0]) & (a <= strip[1])
+    return band & (distance > 0), band & (distance < 0)
+
+
+def _offsets(fields: dict, sigmas: dict, varios: dict, fault, distance, x, y, strip) -> dict:
+    """Offset of each component across the fault (median right strip minus
+    median left strip) with its standard error (:func:`mean_error` of both)."""
+    from tiledsm.displace.uncertainty import mean_error
+
+    out = {}
+    for name, v in fields.items():
+        right, left = _strip_cells(distance, strip, np.isfinite(v) & np.isfinite(sigmas[name]))
+        if not right.any() or not left.any():
+            continue
+        e = np.hypot(mean_error(sigmas[name], x, y, right, varios[name]),
+                     mean_error(sigmas[name], x, y, left, varios[name]))
+        out[name] = {"offset": float(np.median(v[right]) - np.median(v[left])), "error": float(1.2533 * e),
+                     "cells": [int(left.sum()), int(right.sum())]}
+    return out
+
+
+def _profiles(fields: dict, distance: np.ndarray, half_width: float, bin_m: float) -> dict:
+    edges = np.arange(-half_width, half_width + bin_m, bin_m)
+    k = np.digitize(distance, edges) - 1
+    prof = {"distance_m": ((edges[:-1] + edges[1:]) / 2).tolist()}
+    for name, v in fields.items():
+        vals = []
+        for b in range(len(edges) - 1):
+            m = (k == b) & np.isfinite(v)
+            vals.append(float(np.median(v[m])) if m.sum() >= 3 else float("nan"))
+        prof[name] = vals
+    return prof
+
+
+def run_displacement(spec: DisplacementSpec, out: Path, *, pre_images, post_images, stable_mask, fault, scene,
+                     cluster, cog: bool = True, quicklook: bool = True) -> dict:
+    """The 3D displacement step (module notes); returns its metrics.
+
+    Raises
+    ------
+    GridError
+        The two orthos are not on one grid.
+    NoStableCellsError
+        No correlated cell is left on the stable terrain.
+    """
+    import xarray as xr
+
+    from tiledsm.cluster import compute_context, compute_with_progress
+    from tiledsm.compare.stable import exclusion_mask, read_polygons
+    from tiledsm.displace import correlate_orthos
+    from tiledsm.displace.correct import CorrectionParams, correct_component
+    from tiledsm.displace.uncertainty import binned_sigma, coverage, fit_variogram
+    from tiledsm.displace.vertical import vertical_displacement
+    from tiledsm.io import open_product, withdraw, write_cog, write_zarr
+    from tiledsm.workflows.fault import error_stats
+
+    if spec.view >= min(len(pre_images), len(post_images)):
+        from tiledsm.errors import RecipeError
+
+        raise RecipeError(f"displacement.view: {spec.view} is past the images of a pair ({len(pre_images)})")
+    params = spec.correlation()
+    dout = out / "displacement"
+    dout.mkdir(parents=True, exist_ok=True)
+    withdraw(dout, ["displacement.png", "profiles.png", *[f"{n}.tif" for n in COMPONENTS],
+                    *[f"sigma_{n}.tif" for n in COMPONENTS]])
+    timings = {}
+    t0 = time.perf_counter()
+    pre_o, post_o, ortho_reports = _orthos(spec, pre_images[spec.view], post_images[spec.view], out, cluster, cog,
+                                           quicklook)
+    timings["orthos_s"] = time.perf_counter() - t0
+
+    # ---- horizontal field (small: the ortho grid coarsened step times)
+    t0 = time.perf_counter()
+    field = correlate_orthos(pre_o, post_o, params, chunk=spec.chunk)
+    with compute_context(cluster) as client:
+        (raw,) = compute_with_progress(xr.concat([field[v] for v in ("dE", "dN", "quality", "texture")], "band").data,
+                                       config=cluster, client=client)
+    dE_raw, dN_raw, quality, texture = (np.asarray(raw[i], np.float64) for i in range(4))
+    timings["correlation_s"] = time.perf_counter() - t0
+    x, y = field.x.values, field.y.values
+    transform, crs = field.rio.transform(), field.rio.crs
+    res = abs(float(pre_o.rio.transform().a))
+    shape = dE_raw.shape
+
+    # ---- stable terrain on the field grid, frame correction
+    stable = np.ones(shape, bool)
+    if stable_mask:
+        stable = ~exclusion_mask(read_polygons(stable_mask, crs), transform, shape)
+    cp = CorrectionParams(plane=spec.plane, stripes=spec.stripes)
+    dE, rep_e = correct_component(dE_raw, x, y, stable, cp, "dE")
+    dN, rep_n = correct_component(dN_raw, x, y, stable, cp, "dN")
+
+    # ---- vertical, read at the displaced position
+    t0 = time.perf_counter()
+    import dask.array as da
+
+    pre_h = open_product(out / "pre" / "dsm.zarr")["height"].data
+    dh = open_product(out / "compare" / "dh.zarr")["dh"].data
+    post_c = pre_h.astype(np.float32) + dh.astype(np.float32)
+    fchunk = max(1, spec.chunk // spec.step)
+    vd = vertical_displacement(pre_h, post_c, da.from_array(np.nan_to_num(dE, nan=0.0), chunks=fchunk),
+                               da.from_array(np.nan_to_num(dN, nan=0.0), chunks=fchunk), step=spec.step, res=res)
+    with compute_context(cluster) as client:
+        (vert,) = compute_with_progress(vd, config=cluster, client=client)
+    dU = np.where(np.isfinite(dE) & np.isfinite(dN), vert[0], np.nan).astype(np.float64)
+    slope = np.asarray(vert[1], np.float64)
+    timings["vertical_s"] = time.perf_counter() - t0
+
+    # ---- uncertainty: heteroscedastic (binned) and spatially correlated (variogram)
+    fields = {"dE": dE, "dN": dN, "dU": dU}
+    preds = {"dE": {"quality": quality}, "dN": {"quality": quality}, "dU": {"slope": slope, "quality": quality}}
+    sigmas, tables, varios, vario_docs = {}, {}, {}, {}
+    for name, v in fields.items():
+        sigmas[name], tables[name] = binned_sigma(v, stable, preds[name])
+        if name == "dU":
+            # dU is read at p + d: the horizontal error moves the reading along the slope
+            sigmas[name] = np.hypot(sigmas[name], np.tan(np.radians(slope)) * np.hypot(sigmas["dE"], sigmas["dN"]))
+        z = v / sigmas[name]
+        varios[name], emp = fit_variogram(z, x, y, stable & np.isfinite(z))
+        vario_docs[name] = {**varios[name].to_dict(), "empirical": emp}
+
+    # ---- products
+    ds = xr.Dataset(
+        {**{n: (("y", "x"), fields[n].astype(np.float32)) for n in COMPONENTS},
+         **{f"sigma_{n}": (("y", "x"), sigmas[n].astype(np.float32)) for n in COMPONENTS},
+         "quality": (("y", "x"), quality.astype(np.float32)), "slope": (("y", "x"), slope.astype(np.float32))},
+        coords={"y": y, "x": x},
+    ).rio.write_crs(crs).rio.write_transform(transform)
+    for n, long in (("dE", "east"), ("dN", "north"), ("dU", "up")):
+        ds[n].attrs.update(units="m", long_name=f"{long} displacement (post - pre), stable-terrain frame")
+        ds[f"sigma_{n}"].attrs.update(units="m", long_name=f"standard error of {n}")
+    ds.attrs.update({f"correlation_{k}": v for k, v in vars(params).items()})
+    write_zarr(ds.chunk({"y": 1024, "x": 1024}), dout / "displacement.zarr")
+    stored = open_product(dout / "displacement.zarr")
+    if cog:
+        for n in (*COMPONENTS, *[f"sigma_{c}" for c in COMPONENTS]):
+            write_cog(stored[n], dout / f"{n}.tif")
+
+    metrics: dict = {
+        "grid": {"shape": list(shape), "resolution_m": float(abs(transform.a)), "step_px": spec.step},
+        "correlation": {k: v for k, v in vars(params).items() if k != "batch"},
+        "resolution_limit_m": spec.window * res,
+        "aliasing_safe": spec.step <= spec.window // 2,
+        "orthos": {k: {kk: r.get(kk) for kk in ("image", "valid_share", "kernel")} for k, r in ortho_reports.items()},
+        "valid_share": float(np.isfinite(dE).mean()),
+        "correction": {"dE": rep_e, "dN": rep_n},
+        "stable_cells": int((stable & np.isfinite(dE)).sum()),
+        "stable_noise": {n: {**error_stats(fields[n][stable & np.isfinite(fields[n])]),
+                             "nmad_px": float(error_stats(fields[n][stable & np.isfinite(fields[n])])["nmad"] / res)}
+                         for n in COMPONENTS},
+        "uncertainty": {n: {"bins": tables[n], "variogram": vario_docs[n]} for n in COMPONENTS},
+    }
+
+    # ---- fault offsets and profiles
+    distance = None
+    if fault is not None:
+        distance = fault.signed_distance(x, y)
+        inner = 0.5 * spec.window * res + spec.step * res
+        strip = (inner, inner + max(30.0, 2 * spec.window * res))
+        s, nrm = fault.strike, fault.normal
+        comp = {"along_strike": dE * s[0] + dN * s[1], "across_strike": dE * nrm[0] + dN * nrm[1], "dU": dU}
+        csig = {"along_strike": np.hypot(sigmas["dE"] * s[0], sigmas["dN"] * s[1]),
+                "across_strike": np.hypot(sigmas["dE"] * nrm[0], sigmas["dN"] * nrm[1]), "dU": sigmas["dU"]}
+        cvar = {"along_strike": varios["dE"], "across_strike": varios["dE"], "dU": varios["dU"]}
+        offsets = _offsets(comp, csig, cvar, fault, distance, x, y, strip)
+        profiles = _profiles(comp, distance, strip[1] + 10, 2 * spec.step * res)
+        metrics["fault"] = {"strip_m": list(strip), "offsets": offsets, "profiles": profiles}
+
+    # ---- truth (synthetic event)
+    if scene is not None:
+        metrics["truth"] = _truth(scene, fields, sigmas, stable, distance, metrics.get("fault"), x, y, spec, shape,
+                                  transform, crs, res, out, cog, coverage, error_stats)
+    if quicklook:
+        _figures(ds, fields, stable, fault, metrics, out, dout)
+    metrics["timings"] = timings
+    metrics["products"] = {p.name: str(p.relative_to(out)) for p in sorted(dout.iterdir())}
+    return metrics
+
+
+def _truth(scene, fields, sigmas, stable, distance, fault_doc, x, y, spec, shape, transform, crs, res, out, cog,
+           coverage, error_stats) -> dict:
+    """Truth on the field grid in the stable frame, per-component errors,
+    the share of errors within +-2 sigma, and the offsets' errors."""
+    import xarray as xr
+
+    from tiledsm.io import write_cog
+    from tiledsm.workflows.fault import throw_across
+
+    from tiledsm.workflows.common import reference_on_grid
+
+    ev = scene.event
+    fine = _fine_like(transform, crs, spec.step, shape)
+    truth = {}
+    for n, key in (("dE", "dx"), ("dN", "dy"), ("dU", "dz")):
+        full = np.asarray(reference_on_grid(ev[key], fine, "nearest").values, np.float64)
+        truth[n] = _block_mean(full, spec.step, shape)
+    # the truth in the frame of the stable terrain (what the correction aligns on)
+    frame = {n: float(np.median(truth[n][stable & np.isfinite(truth[n])])) for n in truth}
+    truth = {n: truth[n] - frame[n] for n in truth}
+    # cells whose window straddles the fault mix both blocks: left out of the per-cell errors
+    near = np.zeros(shape, bool) if distance is None else np.abs(distance) < 0.5 * spec.window * res + spec.step * res
+    doc: dict = {"frame": {n: -frame[n] for n in frame}, "components": {}}
+    for n in COMPONENTS:
+        err = fields[n] - truth[n]
+        ok = np.isfinite(err) & ~near
+        doc["components"][n] = {
+            "all": error_stats(err[ok]), "stable": error_stats(err[ok & stable]), "moving": error_stats(err[ok & ~stable]),
+            "within_2_sigma": coverage(err[ok], sigmas[n][ok]),
+        }
+        doc["components"][n]["all"]["nmad_px"] = doc["components"][n]["all"].get("nmad", np.nan) / res
+    if distance is not None and fault_doc is not None:
+        strip = tuple(fault_doc["strip_m"])
+        ev_p = ev["params"]
+        sv = np.asarray(ev_p.strike)
+        nv = np.asarray(ev_p.normal)
+        tcomp = {"along_strike": truth["dE"] * sv[0] + truth["dN"] * sv[1],
+                 "across_strike": truth["dE"] * nv[0] + truth["dN"] * nv[1], "dU": truth["dU"]}
+        off = {}
+        for name, t in tcomp.items():
+            meas = fault_doc["offsets"].get(name)
+            if meas is None:
+                continue
+            valid = np.isfinite(fields["dE"]) & np.isfinite(fields["dU"] if name == "dU" else fields["dE"])
+            tt = throw_across(t, distance, strip, valid)["throw"]
+            off[name] = {"measured": meas["offset"], "truth": tt, "error": meas["offset"] - tt,
+                         "stated_error": meas["error"]}
+        off["nominal"] = {"slip": float(ev_p.slip), "throw": float(ev_p.throw)}
+        doc["offsets"] = off
+        prof = fault_doc["profiles"]
+        edges = np.asarray(prof["distance_m"])
+        bw = edges[1] - edges[0] if edges.size > 1 else 1.0
+        k = np.digitize(distance, np.concatenate([edges - bw / 2, [edges[-1] + bw / 2]])) - 1
+        for name, t in tcomp.items():
+            prof["truth_" + name] = [float(np.median(t[k == b])) if (k == b).any() else float("nan")
+                                     for b in range(edges.size)]
+    if ev["params"].uplift:
+        # the uplift where it exceeds half its peak, away from the fault: mean dU error there
+        up = _uplift_share(ev["params"], scene, x, y)
+        sel = (up > 0.5) & np.isfinite(fields["dU"]) & ~near
+        if sel.any():
+            doc["uplift"] = {"cells": int(sel.sum()), "measured_mean": float(np.mean(fields["dU"][sel])),
+                             "truth_mean": float(np.mean(truth["dU"][sel])),
+                             "error": float(np.mean(fields["dU"][sel] - truth["dU"][sel]))}
+    scene_dir = out / "scene"
+    if cog:
+        for n in COMPONENTS:
+            da_ = xr.DataArray(truth[n].astype(np.float32), dims=("y", "x"), coords={"y": y, "x": x})
+            write_cog(da_.rio.write_crs(crs).rio.write_transform(transform), scene_dir / f"true_{n}.tif")
+    return doc
+
+
+def _fine_like(transform, crs, step: int, shape):
+    """The DSM grid under the field, as an (in-memory) template to sample truth rasters on."""
+    import xarray as xr
+    from affine import Affine
+
+    t = Affine(transform.a / step, 0, transform.c, 0, transform.e / step, transform.f)
+    ny, nx = shape[0] * step, shape[1] * step
+    x = t.c + (np.arange(nx) + 0.5) * t.a
+    yy = t.f + (np.arange(ny) + 0.5) * t.e
+    return xr.DataArray(np.zeros((ny, nx), np.float32), dims=("y", "x"), coords={"y": yy, "x": x}).rio.write_crs(
+        crs).rio.write_transform(t)
+
+
+def _uplift_share(ev, scene, x, y) -> np.ndarray:
+    """The uplift's shape (0..1) on the field cells (local metres: minus the scene origin)."""
+    xx = np.asarray(x)[None, :] - scene.origin[0] - ev.uplift_center[0]
+    yy = np.asarray(y)[:, None] - scene.origin[1] - ev.uplift_center[1]
+    g = np.exp(-0.5 * (xx**2 + yy**2) / ev.uplift_sigma**2)
+    if ev.still == "left":
+        nx_, ny_ = ev.normal
+        side = ((np.asarray(x)[None, :] - scene.origin[0] - ev.fault_point[0]) * nx_
+                + (np.asarray(y)[:, None] - scene.origin[1] - ev.fault_point[1]) * ny_) >= 0
+        g = np.where(side, g, 0.0)
+    return g
+
+
+def _figures(ds, fields, stable, fault, metrics, out: Path, dout: Path) -> None:
+    from tiledsm.displace.figures import displacement_figure, profile_figure
+    from tiledsm.io import open_product
+    from tiledsm.quicklook import hillshade
+
+    t = ds.rio.transform()
+    ny, nx = fields["dE"].shape
+    extent = (t.c, t.c + nx * t.a, t.f + ny * t.e, t.f)
+    pre = open_product(out / "pre" / "dsm.zarr")["height"]
+    k = max(1, int(max(pre.shape) // 1024))
+    z = np.asarray(pre.data[::k, ::k].compute(), np.float64)
+    res = abs(float(pre.rio.transform().a)) * k
+    shade = hillshade(np.nan_to_num(z, nan=float(np.nanmedian(z))), res)
+    line = None
+    if fault is not None:
+        L = 2 * max(extent[1] - extent[0], extent[3] - extent[2])
+        p, s = fault.point, fault.strike
+        line = (np.array([p[0] - L * s[0], p[0] + L * s[0]]), np.array([p[1] - L * s[1], p[1] + L * s[1]]))
+    displacement_figure(fields["dE"], fields["dN"], fields["dU"], extent, dout / "displacement.png", shade=shade,
+                        title="3D displacement (post - pre), stable-terrain frame", fault_line=line)
+    if "fault" in metrics:
+        profile_figure(metrics["fault"]["profiles"], metrics["fault"]["offsets"], dout / "profiles.png",
+                       title="across the fault trace")
