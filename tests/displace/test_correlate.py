@@ -68,3 +68,16 @@ def test_bad_parameters_are_named():
     for kw, needle in (({"window": 31}, "window"), ({"step": 3}, "step"), ({"frequency_cut": 0}, "frequency_cut")):
         with pytest.raises(InvalidOptionError, match=needle):
             CorrelationParams(**kw)
+
+
+def test_offsets_up_to_search_are_found_by_the_widened_coarse_window():
+    base = texture(seed=4)
+    post = fourier_shift(base, -11.6, 13.3)  # beyond a third of the 32 px window
+    r, c = centres(margin=80)
+    out = correlate_windows(base, post, r, c, CorrelationParams(search=16))
+    assert np.isfinite(out[0]).mean() > 0.99
+    assert np.nanmedian(out[0]) == pytest.approx(-11.6, abs=0.01)
+    assert np.nanmedian(out[1]) == pytest.approx(13.3, abs=0.01)
+    # the same offsets with the default search (8 px) are refused, not wrong
+    small = correlate_windows(base, post, r, c, CorrelationParams(search=8))
+    assert np.isnan(small[0]).mean() > 0.95

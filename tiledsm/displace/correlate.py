@@ -41,7 +41,8 @@ Conventions
   ``|sum w exp(i (phase - model))| / sum w`` in ``[0, 1]`` (1: a pure
   shift); cells below ``min_quality``, or whose ``pre`` window has a
   standard deviation below ``min_texture`` (no texture: NaN, not noise),
-  are NaN.
+  are NaN, and so are cells whose coarse phase-correlation peak is under
+  ``min_peak`` (no true match within ``search``: refused, not guessed).
 """
 
 from __future__ import annotations
@@ -77,6 +78,12 @@ class CorrelationParams:
         Share of the Nyquist frequency used by the phase-plane fit, (0, 1].
     min_quality : float
         Phase coherence under which a cell is NaN.
+    min_peak : float
+        Height of the coarse phase-correlation peak under which a cell is
+        NaN: a displacement beyond ``search`` (or no match at all) leaves
+        only noise peaks (measured: <= 0.11 at the 99th percentile on a
+        texture moved past ``search``, against >= 0.24 at the 1st
+        percentile for real matches of the s2p orthos).
     min_texture : float
         Standard deviation of the ``pre`` window (image units) under which
         a cell is NaN.
@@ -93,6 +100,7 @@ class CorrelationParams:
     iterations: int = 2
     frequency_cut: float = 0.6
     min_quality: float = 0.5
+    min_peak: float = 0.15
     min_texture: float = 1.0
     max_nodata: float = 0.2
     batch: int = 1024
@@ -358,9 +366,9 @@ def correlate_windows(pre: np.ndarray, post: np.ndarray, rows: np.ndarray, cols:
         r, c = rows[s:s + params.batch], cols[s:s + params.batch]
         a, ok_a, _ = _prepare(_windows(pre, r, c, wc), params.max_nodata, taper_c)
         b, ok_b, _ = _prepare(_windows(post, r, c, wc), params.max_nodata, taper_c)
-        dy, dx, _ = coarse_shift(a, b, params.search)
+        dy, dx, peak = coarse_shift(a, b, params.search)
         fa, ok_f, texture = _prepare(_windows(pre, r, c, w), params.max_nodata, taper)
-        ok = ok_a & ok_b & ok_f
+        ok = ok_a & ok_b & ok_f & (peak >= params.min_peak)
         quality = np.zeros(r.size)
         for _ in range(params.iterations):
             moved = shifted_windows(post, r, c, dy, dx, w)  # NaN outside or next to NaN

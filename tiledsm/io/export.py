@@ -29,6 +29,21 @@ def _tag_value(v) -> str:
     return str(v)
 
 
+
+
+def _cache_mb() -> int:
+    """The GDAL block cache of exports, MiB: the process's ``GDAL_CACHEMAX``
+    (set by :mod:`tiledsm` unless the user set it). Set on the ``Env`` too,
+    since a GDAL that initialised its cache earlier in the process ignores
+    a later environment variable (measured on an 8192² COG export: process
+    peak 638 MiB with GDAL's default cache, 320-370 MiB capped anywhere
+    between 32 and 256 MiB, of which 162 MiB are the imports; same time)."""
+    try:
+        return int(os.environ.get("GDAL_CACHEMAX", "64"))
+    except ValueError:  # a user's "5%" or "1GB": leave it to GDAL
+        return 64
+
+
 def _write_gtiff(
     data,
     path: Path,
@@ -70,7 +85,7 @@ def _write_gtiff(
         profile["BIGTIFF"] = "YES"
     is_dask = hasattr(arr, "dask")
     steps = arr.chunks[1] if is_dask else (ny,)
-    with rasterio.Env(GDAL_PAM_ENABLED="NO"), warnings.catch_warnings():
+    with rasterio.Env(GDAL_PAM_ENABLED="NO", GDAL_CACHEMAX=_cache_mb()), warnings.catch_warnings():
         warnings.simplefilter("ignore", NotGeoreferencedWarning)
         with rasterio.open(path, "w", **profile) as dst:
             if rpc is not None:
@@ -171,7 +186,7 @@ def write_cog(
                 da.data, src, dtype=dt, nodata=nodata, transform=transform, crs=crs, rpc=rpc, tags=tags,
                 compress=None, blocksize=blocksize,
             )
-            with rasterio.Env(GDAL_PAM_ENABLED="NO"):
+            with rasterio.Env(GDAL_PAM_ENABLED="NO", GDAL_CACHEMAX=_cache_mb()):
                 rasterio.shutil.copy(src, tmp, driver="COG", **opts)
         finally:
             remove_path(src)

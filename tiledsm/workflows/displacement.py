@@ -53,6 +53,8 @@ class DisplacementSpec(StrictModel):
     search: int = Field(8, ge=1, description="largest displacement looked for, pixels per axis")
     frequency_cut: float = Field(0.6, gt=0, le=1, description="share of Nyquist used by the sub-pixel phase fit")
     min_quality: float = Field(0.5, ge=0, le=1, description="phase coherence under which a cell is NaN")
+    min_peak: float = Field(0.15, ge=0, le=1, description="coarse phase-correlation peak under which a cell is NaN "
+                            "(no true match within search)")
     min_texture: float = Field(1.0, ge=0, description="std of the pre window (DN) under which a cell is NaN")
     plane: bool = Field(True, description="remove a plane per component fitted on stable terrain (else its median)")
     stripes: Optional[Literal["rows"]] = Field(None, description="also remove along-row stripes (attitude jitter)")
@@ -65,6 +67,7 @@ class DisplacementSpec(StrictModel):
 
         return CorrelationParams(window=self.window, step=self.step, search=self.search,
                                  frequency_cut=self.frequency_cut, min_quality=self.min_quality,
+                                 min_peak=self.min_peak,
                                  min_texture=self.min_texture)
 
 
@@ -200,6 +203,8 @@ def run_displacement(spec: DisplacementSpec, out: Path, *, pre_images, post_imag
 
     # ---- uncertainty: heteroscedastic (binned) and spatially correlated (variogram)
     fields = {"dE": dE, "dN": dN, "dU": dU}
+    # dE/dN by quality only: binned by slope too, the open ground's bins get the still block's small spread
+    # and cover fewer of the moving block's errors (measured: dE 0.885 -> 0.869 within 2 sigma)
     preds = {"dE": {"quality": quality}, "dN": {"quality": quality}, "dU": {"slope": slope, "quality": quality}}
     sigmas, tables, varios, vario_docs = {}, {}, {}, {}
     for name, v in fields.items():
