@@ -85,3 +85,27 @@ def test_still_left_block_is_truly_still_and_is_the_stable_terrain():
     assert np.allclose(np.hypot(dx[side], dy[side]), 1.5, atol=1e-6)
     feats, kept = event_exclusion_polygons(ev, (0.0, 0.0), 384.0)
     assert kept == -1 and [f["properties"]["name"] for f in feats] == ["fault zone", "block holding the uplift"]
+
+
+@pytest.mark.slow
+def test_no_stable_terrain_left_is_a_clear_error(tmp_path):
+    """A stable mask that excludes the whole scene: the run stops at the first
+    stage that needs stable terrain (the dh comparison), naming the mask, before
+    any displacement product (the displacement's own check is
+    tests/displace/test_correct.py)."""
+    from tiledsm.errors import TiledsmError
+
+    mask = tmp_path / "everything.geojson"
+    mask.write_text(json.dumps({"type": "Polygon", "coordinates": [[[5.1, 44.1], [5.3, 44.1], [5.3, 44.3],
+                                                                    [5.1, 44.3], [5.1, 44.1]]]}))
+    doc = {
+        "pipeline": "deformation",
+        "input": {"synth": {"size": 256, "gsd": 0.5, "bh": 0.4, "seed": 1, "event": True, "still": "left"}},
+        "grid": {"chunk": 128},
+        "compare": {"coreg": "none", "chunk": 128, "stable_mask": str(mask)},
+        "displacement": {"window": 32, "step": 8},
+    }
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump(doc))
+    with pytest.raises(TiledsmError, match=r"no stable terrain left.*everything.geojson.*cover every valid cell"):
+        run_recipe(load_recipe(tmp_path / "r.yaml"), tmp_path / "run", CLUSTER)
+    assert not (tmp_path / "run" / "displacement").exists()
