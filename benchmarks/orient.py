@@ -6,7 +6,7 @@ Run: ``.venv/bin/python benchmarks/orient.py`` (about 3 minutes on 2 cores); wri
 Cases
 -----
 synthetic (``make_scene``, 512 px, GSD 0.5 m, B/H 0.4, 2 and 3 views). Biases injected per view
-(``tests/orient/conftest.py`` BIASES: |A0|, |B0| 2-3 px, every linear term 1e-4) into copies of
+(``tests/orient/orient_cases.py`` BIASES: |A0|, |B0| 2-3 px, every linear term 1e-4) into copies of
 the views (RPC tags). Truth: the scene's own RPCs and truth DSM.
 
 - ``gcp4``: 4 GCPs near the image corners (0.05 px measurement noise, exact ground) + tie points;
@@ -47,7 +47,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests" / "orient"))
 sys.path.insert(0, str(ROOT))
 
-from conftest import BIASES, relative_error  # noqa: E402
+from orient_cases import BIASES, relative_error  # noqa: E402
 
 from tiledsm.cli import main  # noqa: E402
 from tiledsm.io.cameras import find_camera  # noqa: E402

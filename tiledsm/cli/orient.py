@@ -31,6 +31,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    help="bias model of every image (default: per image by point count)")
     p.add_argument("--no-tie-points", action="store_true", help="adjust on GCPs only")
     p.add_argument("--tile", type=int, default=512, help="tie-point tile side, pixels")
+    p.add_argument("--extractor", choices=("structural", "features"), default="structural",
+                   help="tie-point matcher: structural (Wallis, Förstner points, NCC along the RPC curve, "
+                   "probability relaxation) or features (corners, NCC)")
     add_cluster_arguments(p)
     add_plan_arguments(p, large=False)
     p.set_defaults(func=run)
@@ -56,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     prepared = plan.product
     paths = {i.role: i.path for i in plan.inputs}  # absolute
-    params = OrientParams(model=args.model, tie_points=not args.no_tie_points, tracks=TrackParams(tile=args.tile))
+    params = OrientParams(model=args.model, tie_points=not args.no_tie_points,
+                          tracks=TrackParams(tile=args.tile, extractor=args.extractor))
     with OutputLock(plan.out):
         # the tie-point tiles are the only parallel part; GCP-only runs start no cluster
         with compute_context(cluster) if params.tie_points and len(prepared.images) > 1 else nullcontext():

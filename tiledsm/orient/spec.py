@@ -43,6 +43,8 @@ class OrientSpec(StrictModel):
     geoid: Optional[str] = Field(None, description="geoid grid (.gtx) the DEM's heights refer to (SRTM: EGM96)")
     model: Optional[Literal["shift", "affine"]] = Field(
         None, description="bias model of every image; left out: chosen per image by point count")
+    extractor: Literal["structural", "features"] = Field(
+        "structural", description="tie-point matcher: structural (Wallis, Förstner, relaxation) or features")
 
     @model_validator(mode="after")
     def _geoid_needs_dem(self):
@@ -119,6 +121,7 @@ def orient_for_recipe(
     from tiledsm.io.cameras import find_camera
     from tiledsm.orient.dem import ReferenceDEM
     from tiledsm.orient.stage import OrientParams, orient_images, write_orientation
+    from tiledsm.orient.tracks import TrackParams
 
     out = Path(out_dir)
     paths = [Path(p) for p in images]
@@ -141,7 +144,7 @@ def orient_for_recipe(
             with rasterio.open(p) as ds:
                 shapes.append((ds.height, ds.width))
         dem = ReferenceDEM.for_cameras(spec.dem, cams, shapes, geoid=spec.geoid)
-    params = OrientParams(model=spec.model)
+    params = OrientParams(model=spec.model, tracks=TrackParams(extractor=spec.extractor))
     o = orient_images(paths, spec.gcps, spec.check_points, dem, params, rpcs=cams, exclude=exclude)
     doc = write_orientation(o, out, params, extra={"inputs": inputs})
     return corrected, None, doc

@@ -16,7 +16,12 @@ the window its points can fall in):
    the height range and projected into every other image: the segment
    between the two projections, shifted by the guide and widened by a
    margin, is where ``cv2.matchTemplate`` (zero-mean NCC) looks; the NCC
-   peak is refined to a sub-pixel position by a parabola in each axis;
+   peak is refined to a sub-pixel position by a parabola in each axis
+   (``TrackParams.extractor="features"``); or, the default, structural
+   matching (``"structural"``, :mod:`tiledsm.orient.structural`: Wallis,
+   Förstner points, NCC along the RPC curve, probability relaxation; more
+   matches, and more of them within 1 px of the truth, on synthetic
+   scenes: ``benchmarks/tiepoints.py``);
 3. per image pair, P2L mismatch rejection (:mod:`tiledsm.orient.p2l`).
 
 A track is a reference point and its matches in the other images (two or
@@ -32,15 +37,22 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
-from tiledsm.errors import MatchingError
+from tiledsm.errors import InvalidOptionError, MatchingError
 from tiledsm.geometry.rpc import RPC
 from tiledsm.orient.p2l import P2LParams, p2l_filter
+from tiledsm.orient.structural import StructuralParams, match_tile_structural
 
-__all__ = ["TrackParams", "Guide", "Tracks", "coarse_guide", "match_tile", "tie_point_tracks", "read_window"]
+__all__ = ["TrackParams", "Guide", "Tracks", "EXTRACTORS", "coarse_guide", "match_tile", "tie_point_tracks",
+           "read_window"]
+
+#: Tie-point extractors by ``TrackParams.extractor`` name: ``f(paths, rpcs,
+#: guide, window, params) -> {"pos", "ncc"}`` (see :func:`match_tile`).
+#: Filled below :func:`match_tile` (empty only while this module loads).
+EXTRACTORS: dict[str, Callable[..., dict]] = {}
 
 
 @dataclass(frozen=True)
@@ -75,6 +87,13 @@ class TrackParams:
         wider windows (a huge height range) are read point by point.
     p2l : P2LParams
         Mismatch rejection.
+    extractor : str
+        Key of :data:`EXTRACTORS`: ``"structural"`` (the default,
+        :mod:`tiledsm.orient.structural`, parameters in ``structural``) or
+        ``"features"`` (corners, NCC along the predicted segment: the
+        parameters ``features_per_tile`` to ``min_std`` above).
+    structural : StructuralParams
+        Parameters of the structural extractor.
     """
 
     tile: int = 512
@@ -89,6 +108,13 @@ class TrackParams:
     height_margin_m: float = 15.0
     max_window: int = 2048
     p2l: P2LParams = P2LParams()
+    extractor: str = "structural"
+    structural: StructuralParams = StructuralParams()
+
+    def __post_init__(self):
+        if EXTRACTORS and self.extractor not in EXTRACTORS:
+            raise InvalidOptionError(f"TrackParams.extractor: expected one of {sorted(EXTRACTORS)}, "
+                                     f"got {self.extractor!r}")
 
 
 @dataclass(frozen=True)
@@ -178,6 +204,36 @@ def _overview(path: str | Path, size: int) -> tuple[np.ndarray, tuple[float, flo
 
 
 # ------------------------------------------------------------------ guide
+def _across_curve(rpc0: RPC, rpcj: RPC, p0: np.ndarray, pj: np.ndarray, h: np.ndarray,
+                  dh: float = 50.0) -> tuple[np.ndarray, np.ndarray]:
+    """Where ``pj`` lies with respect to the curve of ``p0`` in image j.
+
+    The curve is the projection into image j of the reference pixel ``p0``
+    localised at every height; near a point it is a straight segment, so
+    two Gauss-Newton steps on the height find the foot of the
+    perpendicular from ``pj``.
+
+    Returns
+    -------
+    dev : numpy.ndarray
+        ``(n, 2)`` row/col from the curve's nearest point to ``pj``, pixels.
+    h : numpy.ndarray
+        ``(n,)`` height of that point, metres (ellipsoidal).
+    """
+    # a step may not leave the cameras' height validity range (localisation diverges far outside)
+    lo = max(r.height_off - abs(r.height_scale) for r in (rpc0, rpcj))
+    hi = min(r.height_off + abs(r.height_scale) for r in (rpc0, rpcj))
+    h = np.clip(np.asarray(h, float), lo, hi)
+    for _ in range(3):
+        lon, lat = rpc0.localize(p0[:, 0], p0[:, 1], h)
+        a = np.stack(rpcj.project(lon, lat, h), -1)
+        lon, lat = rpc0.localize(p0[:, 0], p0[:, 1], h + dh)
+        d = (np.stack(rpcj.project(lon, lat, h + dh), -1) - a) / dh  # pixels per metre along the curve
+        h = np.clip(h + np.sum((pj - a) * d, axis=1) / np.sum(d * d, axis=1), lo, hi)
+    lon, lat = rpc0.localize(p0[:, 0], p0[:, 1], h)
+    return pj - np.stack(rpcj.project(lon, lat, h), -1), h
+
+
 def coarse_guide(paths: Sequence[str | Path], rpcs: Sequence[RPC], params: TrackParams = TrackParams()) -> Guide:
     """Height range and prediction shifts from overview SIFT matches
     between the reference and every other image (module docstring).
@@ -207,13 +263,17 @@ def coarse_guide(paths: Sequence[str | Path], rpcs: Sequence[RPC], params: Track
         pt = np.r_[np.arange(n), np.arange(n)]
         g, _ = intersect([rpcs[0], rpcs[j]], img, pt, np.r_[p0[:, 0], pj[:, 0]], np.r_[p0[:, 1], pj[:, 1]], n)
         ok = np.all(np.isfinite(g), axis=1)
-        pred = np.stack(rpcs[j].project(g[ok, 0], g[ok, 1], g[ok, 2]), -1)
-        dev = pj[ok] - pred
+        # the extractors hold the reference point fixed and search along its curve in image j:
+        # the shift is what is left across that curve (the intersection's residual would split
+        # it between both images and count its along-curve part twice, once as height)
+        dev, hj = _across_curve(rpcs[0], rpcs[j], p0[ok], pj[ok], g[ok, 2])
+        fin = np.all(np.isfinite(dev), axis=1)
+        dev, hj = dev[fin], hj[fin]
         shift = np.median(dev, axis=0)
         good = np.hypot(*(dev - shift).T) < max(3.0, 3 * float(np.median(np.hypot(*(dev - shift).T))))
         shifts.append(shift)
         counts.append(int(good.sum()))
-        heights.append(g[ok][good, 2])
+        heights.append(hj[good])
     h = np.concatenate(heights)
     lo, hi = np.percentile(h, [1, 99]) if h.size >= 20 else (h.min(), h.max())
     m = params.height_margin_m + 0.1 * (hi - lo)
@@ -317,13 +377,16 @@ def match_tile(
     return {"pos": pos, "ncc": ncc}
 
 
+EXTRACTORS.update(features=match_tile, structural=match_tile_structural)
+
+
 # ------------------------------------------------------------------ scene
 def _tile_task(paths, rpcs, guide, shape, params, block_info=None):
     (bi, bj) = block_info[None]["chunk-location"]
     t = params.tile
     win = (bi * t, min((bi + 1) * t, shape[0]), bj * t, min((bj + 1) * t, shape[1]))
     out = np.empty((1, 1), object)
-    out[0, 0] = match_tile(paths, rpcs, guide, win, params)
+    out[0, 0] = EXTRACTORS[params.extractor](paths, rpcs, guide, win, params)
     return out
 
 
