@@ -72,8 +72,7 @@ class DisplacementSpec(StrictModel):
 
 
 def _orthos(spec: DisplacementSpec, pre_image: str, post_image: str, out: Path, cluster, cog: bool, quicklook: bool):
-    """Both orthos, each on its own epoch's DSM store; returns the two lazy arrays."""
-    from tiledsm.io import open_product
+    """Both orthos, each on its own epoch's DSM store; returns their zarr stores."""
     from tiledsm.ortho.rectify import OrthoParams, orthorectify
     from tiledsm.ortho.stage import open_dsm, open_source, write_ortho_products
 
@@ -83,7 +82,7 @@ def _orthos(spec: DisplacementSpec, pre_image: str, post_image: str, out: Path, 
         ortho = orthorectify(open_source(image, dsm=dsm), open_dsm(dsm), OrthoParams(kernel=spec.kernel))
         reports[name] = write_ortho_products(ortho, out / name, cluster=cluster, cog=cog, quicklook=quicklook)
         log.info("%s-event ortho of %s: %.1f %% valid", name, image, 100 * reports[name].get("valid_share", np.nan))
-    return open_product(out / "pre" / "ortho.zarr"), open_product(out / "post" / "ortho.zarr"), reports
+    return out / "pre" / "ortho.zarr", out / "post" / "ortho.zarr", reports
 
 
 def _block_mean(a: np.ndarray, step: int, shape: tuple[int, int]) -> np.ndarray:
@@ -166,6 +165,7 @@ def run_displacement(spec: DisplacementSpec, out: Path, *, pre_images, post_imag
 
     # ---- horizontal field (small: the ortho grid coarsened step times)
     t0 = time.perf_counter()
+    # from the stores: each task reads its own window (memory does not grow with the scene)
     field = correlate_orthos(pre_o, post_o, params, chunk=spec.chunk)
     with compute_context(cluster) as client:
         (raw,) = compute_with_progress(xr.concat([field[v] for v in ("dE", "dN", "quality", "texture")], "band").data,
@@ -174,7 +174,7 @@ def run_displacement(spec: DisplacementSpec, out: Path, *, pre_images, post_imag
     timings["correlation_s"] = time.perf_counter() - t0
     x, y = field.x.values, field.y.values
     transform, crs = field.rio.transform(), field.rio.crs
-    res = abs(float(pre_o.rio.transform().a))
+    res = abs(float(field.rio.transform().a)) / spec.step
     shape = dE_raw.shape
 
     # ---- stable terrain on the field grid, frame correction
