@@ -106,16 +106,6 @@ def _store_block(*, pre: tuple[str, str], post: tuple[str, str], shape: tuple[in
     return _cells(a, b, r1 - r0, c1 - c0, params, halo)
 
 
-def _stored_name(store: Path, da_: xr.DataArray) -> str:
-    with xr.open_zarr(store, chunks=None, decode_coords=False, consolidated=False, zarr_format=3) as ds:
-        names = [n for n in ds.data_vars if ds[n].ndim == 2]
-    if da_.name in names:
-        return str(da_.name)
-    if len(names) == 1:
-        return names[0]
-    raise GridError(f"{store}: expected one 2-D ortho variable, found {names}")
-
-
 def correlate_orthos(pre: xr.DataArray | str | Path, post: xr.DataArray | str | Path,
                      params: CorrelationParams = CorrelationParams(), *, chunk: int = 1024) -> xr.Dataset:
     """Lazy displacement field of ``post`` against ``pre``.
@@ -154,7 +144,10 @@ def correlate_orthos(pre: xr.DataArray | str | Path, post: xr.DataArray | str | 
             raise TypeError("correlate_orthos: give two DataArrays or two store paths")
         paths = (Path(pre), Path(post))
         pre, post = (open_product(p) for p in paths)
-        stores = tuple((str(p), _stored_name(p, a)) for p, a in zip(paths, (pre, post)))
+        for p, a in zip(paths, (pre, post)):
+            if not isinstance(a, xr.DataArray) or a.ndim != 2:
+                raise GridError(f"{p}: not a single-band ortho store (write it from one 2-D DataArray)")
+        stores = tuple((str(p), str(a.name)) for p, a in zip(paths, (pre, post)))  # the stored variable
     check_same_grid(pre, post)
     s = params.step
     ny, nx = (n // s for n in pre.shape)
@@ -165,26 +158,25 @@ def correlate_orthos(pre: xr.DataArray | str | Path, post: xr.DataArray | str | 
     res_x, res_y = float(t.a), float(t.e)
     c = field_chunk(chunk, s)
     depth = params.halo
-    arrays = []
-    for a in (pre, post):
-        d = a.data if isinstance(a.data, da.Array) else da.from_array(np.asarray(a.values))
-        arrays.append(d[: ny * s, : nx * s].astype(np.float32).rechunk(c))
-    chunks_out = ((4,), tuple(n // s for n in arrays[0].chunks[0]), tuple(n // s for n in arrays[0].chunks[1]))
-    store_chunks = chunks_out
-    # dask's overlap needs chunks at least as deep as the halo
-    if min(min(cs) for cs in arrays[0].chunks) < depth:
-        arrays = [a.rechunk(max(c, depth + s - depth % s)) for a in arrays]
-        chunks_out = ((4,), tuple(n // s for n in arrays[0].chunks[0]), tuple(n // s for n in arrays[0].chunks[1]))
     if stores is not None:
         # every task reads its block and `depth` pixels around it (NaN past the cropped grid) itself
         from dask.base import tokenize
 
+        cells = tuple(tuple(n // s for n in cs) for cs in da.core.normalize_chunks(c, (ny * s, nx * s)))
         raw = da.map_blocks(
-            _store_block, chunks=store_chunks, dtype=np.float32, meta=np.empty((0, 0, 0), np.float32),
+            _store_block, chunks=((4,), *cells), dtype=np.float32, meta=np.empty((0, 0, 0), np.float32),
             pre=stores[0], post=stores[1], shape=(ny * s, nx * s), params=params, halo=depth,
             name=f"correlate-{tokenize(stores, params, c)}",
         )
     else:
+        arrays = []
+        for a in (pre, post):
+            d = a.data if isinstance(a.data, da.Array) else da.from_array(np.asarray(a.values))
+            arrays.append(d[: ny * s, : nx * s].astype(np.float32).rechunk(c))
+        # dask's overlap needs chunks at least as deep as the halo
+        if min(min(cs) for cs in arrays[0].chunks) < depth:
+            arrays = [a.rechunk(max(c, depth + s - depth % s)) for a in arrays]
+        chunks_out = ((4,), tuple(n // s for n in arrays[0].chunks[0]), tuple(n // s for n in arrays[0].chunks[1]))
         # one map_overlap: every block sees `depth` pixels of its neighbours
         # (NaN past the grid) and returns its (4, cells, cells)
         raw = da.map_overlap(

@@ -134,3 +134,21 @@ def scene_rpc(da: xr.DataArray) -> RPC:
     return RPC.from_gdal(md, source=str(da.attrs.get("camera_source") or src))
 
 
+# --------------------------------------------------------------------------- windows
+def read_window(path: str | os.PathLike, r0: int, r1: int, c0: int, c1: int, band: int = 1) -> np.ndarray:
+    """Rows ``r0:r1`` and columns ``c0:c1`` of a raster band as float32,
+    NaN outside the raster and on nodata (boundless read; array indices,
+    row 0 the image's first line)."""
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning
+    from rasterio.windows import Window
+
+    out = np.full((r1 - r0, c1 - c0), np.nan, np.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        with rasterio.open(path) as ds:
+            rr0, rr1, cc0, cc1 = max(r0, 0), min(r1, ds.height), max(c0, 0), min(c1, ds.width)
+            if rr1 > rr0 and cc1 > cc0:
+                a = ds.read(band, window=Window(cc0, rr0, cc1 - cc0, rr1 - rr0), masked=True)
+                out[rr0 - r0: rr1 - r0, cc0 - c0: cc1 - c0] = a.astype(np.float32).filled(np.nan)
+    return out

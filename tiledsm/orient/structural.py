@@ -43,7 +43,6 @@ the curve, from its low-height end.
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -52,6 +51,7 @@ import numpy as np
 
 from tiledsm.errors import InvalidOptionError
 from tiledsm.geometry.rpc import RPC
+from tiledsm.io.scenes import read_window
 
 __all__ = ["StructuralParams", "wallis", "forstner", "curve_candidates", "relax", "match_tile_structural"]
 
@@ -447,28 +447,10 @@ def relax(ncc: np.ndarray, s: np.ndarray, xy: np.ndarray,
 
 
 # ------------------------------------------------------------------ one tile
-def _read_window(path, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
-    """Band 1, rows ``r0:r1``, columns ``c0:c1``, float32, NaN outside the
-    raster and on nodata (boundless)."""
-    import rasterio
-    from rasterio.errors import NotGeoreferencedWarning
-    from rasterio.windows import Window
-
-    out = np.full((r1 - r0, c1 - c0), np.nan, np.float32)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", NotGeoreferencedWarning)
-        with rasterio.open(path) as ds:
-            rr0, rr1, cc0, cc1 = max(r0, 0), min(r1, ds.height), max(c0, 0), min(c1, ds.width)
-            if rr1 > rr0 and cc1 > cc0:
-                a = ds.read(1, window=Window(cc0, rr0, cc1 - cc0, rr1 - rr0), masked=True)
-                out[rr0 - r0: rr1 - r0, cc0 - c0: cc1 - c0] = a.astype(np.float32).filled(np.nan)
-    return out
-
-
 def _filtered(path, a0, a1, params: StructuralParams) -> np.ndarray:
     """Wallis-filtered window ``[a0, a1)`` (array indices) of an image."""
     hw = params.wallis_window // 2 + 1
-    raw = _read_window(path, a0[0] - hw, a1[0] + hw, a0[1] - hw, a1[1] + hw)
+    raw = read_window(path, a0[0] - hw, a1[0] + hw, a0[1] - hw, a1[1] + hw)
     return wallis(raw, params)[hw:-hw, hw:-hw]
 
 
@@ -508,7 +490,7 @@ def match_tile_structural(
     r0, r1, c0, c1 = window
     half = sp.template // 2
     halo = sp.wallis_window // 2 + max(half, sp.forstner_window // 2 + 1) + 2
-    ref = wallis(_read_window(paths[0], r0 - halo, r1 + halo, c0 - halo, c1 + halo), sp)
+    ref = wallis(read_window(paths[0], r0 - halo, r1 + halo, c0 - halo, c1 + halo), sp)
     pts, _ = forstner(ref, sp)
     inner = ((pts[:, 0] >= halo) & (pts[:, 0] < halo + r1 - r0) & (pts[:, 1] >= halo) & (pts[:, 1] < halo + c1 - c0)
              if len(pts) else np.zeros(0, bool))

@@ -43,6 +43,7 @@ import numpy as np
 
 from tiledsm.errors import InvalidOptionError, MatchingError
 from tiledsm.geometry.rpc import RPC
+from tiledsm.io.scenes import read_window
 from tiledsm.orient.p2l import P2LParams, p2l_filter
 from tiledsm.orient.structural import StructuralParams, match_tile_structural
 
@@ -168,25 +169,6 @@ class Tracks:
 
 
 # ------------------------------------------------------------------ reading
-def read_window(path: str | Path, r0: int, r1: int, c0: int, c1: int, band: int = 1) -> np.ndarray:
-    """Rows ``r0:r1`` and columns ``c0:c1`` of a raster band as float32,
-    NaN outside the raster and on nodata (boundless read)."""
-    import rasterio
-    from rasterio.errors import NotGeoreferencedWarning
-    from rasterio.windows import Window
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", NotGeoreferencedWarning)
-        with rasterio.open(path) as ds:
-            h, w = ds.height, ds.width
-            out = np.full((r1 - r0, c1 - c0), np.nan, np.float32)
-            rr0, rr1, cc0, cc1 = max(r0, 0), min(r1, h), max(c0, 0), min(c1, w)
-            if rr1 > rr0 and cc1 > cc0:
-                a = ds.read(band, window=Window(cc0, rr0, cc1 - cc0, rr1 - rr0), masked=True)
-                out[rr0 - r0: rr1 - r0, cc0 - c0: cc1 - c0] = a.astype(np.float32).filled(np.nan)
-    return out
-
-
 def _overview(path: str | Path, size: int) -> tuple[np.ndarray, tuple[float, float]]:
     """Area-averaged overview (longest side <= size) and its (row, col)
     scale factors to full-image pixels."""
