@@ -569,6 +569,10 @@ def format_table(rows: list[dict]) -> str:
             f"{f(s.get('max_abs_m'), '.1f', 9)} {f(s.get('rmse_m'), '.3f', 7)} {f(s.get('nmad_m'), '.3f', 7)} "
             f"{f(s.get('median_m'), '.2f', 9)} {f(s.get('completeness'), '.3f', 7)} {f(wall, '.1f', 7)}"
         )
+        c = row.get("coregistered")
+        if c:
+            lines.append(f"{'  after co-registration (Nuth & Kaab):':44} offset {c['offset_east_m']:+.3f} m east, "
+                         f"{c['offset_north_m']:+.3f} m north; NMAD {c['nmad']:.3f} m")
     lines.append(f"{'target':44} {'':7} {'<=0.010':>8} {'0 cells':>8} {'':9} {'<=0.5':>7} {'':7} {'':9} {'>=0.92':>7}")
     return "\n".join(lines)
 
@@ -618,6 +622,17 @@ def format_diagnosis(tool: str, d: dict) -> str:
     return "\n".join(L)
 
 
+def coregistered(h_da, reference: Path) -> dict:
+    """Where the DSM lies relative to the reference (Nuth & Kääb, fitted on
+    every cell) and its NMAD once moved back onto it
+    (:func:`tiledsm.compare.accuracy.reference_accuracy`)."""
+    from tiledsm.compare.accuracy import reference_accuracy
+
+    stats, _ = reference_accuracy(h_da, reference, coregister=True)
+    c = stats["coregistered"]
+    return {k: c[k] for k in ("offset_east_m", "offset_north_m", "nmad", "median", "rmse", "count")} | {"nmad_plain": stats["nmad"]}
+
+
 def score_tool(row: dict, dsm_path: Path, ref, r: np.ndarray, args, *, zarr_path: Path | None = None, png_name: str | None = None,
                geo: dict | None = None) -> None:
     """Fill ``row`` with scores and (for ``png_name``) a diagnosis and a PNG."""
@@ -629,6 +644,7 @@ def score_tool(row: dict, dsm_path: Path, ref, r: np.ndarray, args, *, zarr_path
     row["grid"] = grid_info(h_da)
     h = on_reference_grid(h_da, ref)
     row["scores"], e = scores(h, r)
+    row["coregistered"] = coregistered(h_da, args.data / "expected_output" / "pair" / "dsm.tif")
     if png_name is None or "median_m" not in row["scores"]:
         return
     conf = nearest_on_reference_grid(conf_da, ref) if conf_da is not None else None

@@ -5,7 +5,9 @@ measured by :mod:`benchmarks._measure`):
 
 - ``s2p``: the real Pleiades pair ``../shared/data/s2p_pair`` on s2p's own grid
   (``--like expected_output/pair/dsm.tif``: 721 x 739 cells of 0.5 m), scored
-  against s2p's DSM (NMAD, completeness);
+  against s2p's DSM (NMAD, completeness; and where the DSM lies relative to it,
+  Nuth & Kaab, with the NMAD once moved back: the plain NMAD counts a
+  georeferencing offset between the two pipelines as height error on slopes);
 - ``synth<N>``: a synthetic N x N px scene (GSD 0.5 m, B/H 0.4, made once by
   ``tiledsm synth`` into the run folder and reused), on its truth grid, scored
   against the truth on visible ground.
@@ -125,6 +127,9 @@ def run_case(name: str, workers: int, run_dir: Path, chunk: int, timeout: float,
             match_s=metrics["timings"]["match_s"],
             mcells_per_s=cells / 1e6 / metrics["timings"]["match_s"],
             nmad_m=ref.get("nmad"),
+            # where the DSM lies relative to the reference (Nuth & Kaab) and its NMAD moved back onto it
+            nmad_coregistered_m=(ref.get("coregistered") or {}).get("nmad"),
+            offset_east_north_m=[(ref.get("coregistered") or {}).get(k) for k in ("offset_east_m", "offset_north_m")],
             completeness=ref.get("completeness"),
             completeness_in_footprint=metrics.get("completeness_in_footprint"),
         )
@@ -168,17 +173,27 @@ def format_graph_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _num(v, fmt: str = ".3f") -> str:
+    return "-" if v is None else format(v, fmt)
+
+
+def _offset(r: dict) -> str:
+    e, n = r.get("offset_east_north_m") or (None, None)
+    return "-" if e is None else f"{e:+.3f}, {n:+.3f}"
+
+
 def format_table(rows: list[dict]) -> str:
     head = (
         "| case | workers | cells | wall (s) | match (s) | Mcells/s | speed-up vs 1 | peak per worker (MiB) "
-        "| planned per worker (MiB) | peak / planned | peak client (MiB) | tree PSS (MiB) | NMAD (m) | completeness |"
+        "| planned per worker (MiB) | peak / planned | peak client (MiB) | tree PSS (MiB) | NMAD (m) | completeness "
+        "| offset E, N (m) | NMAD co-registered (m) |"
     )
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     base = {r["case"]: r for r in rows if r["workers"] == 1 and "match_s" in r}
     for r in rows:
         m = r["measurement"]
         if "match_s" not in r:
-            lines.append(f"| {r['case']} | {r['workers']} | failed (rc {m['returncode']}) ||||||||||||")
+            lines.append(f"| {r['case']} | {r['workers']} | failed (rc {m['returncode']}) ||||||||||||||")
             continue
         b = base.get(r["case"])
         speed = f"{b['match_s'] / r['match_s']:.2f}" if b else "-"
@@ -190,7 +205,7 @@ def format_table(rows: list[dict]) -> str:
             f"{r['mcells_per_s']:.3f} | {speed} | {m['peak_descendant_rss_mib']:.0f} | {plan} | {ratio} | "
             f"{m['peak_root_rss_mib']:.0f} | "
             f"{m['peak_pss_mib'] or float('nan'):.0f} | "
-            f"{r['nmad_m']:.3f} | {r['completeness']:.3f} |"
+            f"{r['nmad_m']:.3f} | {r['completeness']:.3f} | {_offset(r)} | {_num(r.get('nmad_coregistered_m'))} |"
         )
     return "\n".join(lines)
 

@@ -258,3 +258,20 @@ def test_statistics_equal_numpy_on_the_stored_layers_in_any_chunking(synth, tmp_
         other_ds = open_product(res.out_dir / "dh.zarr")
         assert np.array_equal(other_ds["dh"].values, dh, equal_nan=True)
         assert np.array_equal(other_ds["stable"].values, st) and np.array_equal(other_ds["slope_class"].values, cls)
+
+
+def test_cli_compare_reads_zarr_stores(synth, tmp_path, capsys):
+    """``tiledsm compare`` of two tiledsm stores (``dsm.zarr`` of two runs),
+    as its help says: the plan read them with GDAL, which opens a zarr
+    folder with no band, and failed with an IndexError."""
+    from tiledsm.cli import main
+    from tiledsm.io import write_zarr
+
+    a = write_zarr(synth.to_dataarray(synth.terrain(*synth.centres((96, 96))), "height").chunk(32), tmp_path / "a.zarr")
+    b = write_zarr(synth.to_dataarray(synth.terrain(*synth.centres((96, 96), 0.0, 1.0)), "height").chunk(32),
+                   tmp_path / "b.zarr")
+    assert main(["compare", str(a), str(b), "--out", str(tmp_path / "o"), "--scheduler", "synchronous", "--dry-run"]) == 0
+    assert "96 x 96 cells of 10" in capsys.readouterr().out
+    assert main(["compare", str(a), str(b), "--out", str(tmp_path / "o"), "--scheduler", "synchronous", "--chunks", "32"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["coregistration"]["dx_px"] == pytest.approx(1.0, abs=0.02)

@@ -63,15 +63,9 @@ def open_dsm(path: str | Path, chunks: int = 1024) -> xr.DataArray:
     if not path.exists():
         raise InputFileError(f"{path}: no such DSM file")
     if path.is_dir():
-        from tiledsm.io import open_product
+        from tiledsm.io import open_raster_product
 
-        obj = open_product(path)
-        if isinstance(obj, xr.Dataset):
-            names = [n for n, v in obj.data_vars.items() if v.ndim == 2]
-            if not names:
-                raise InputFileError(f"{path}: zarr store holds no 2-D height variable")
-            obj = obj["height" if "height" in names else names[0]]
-        arr = obj
+        arr = open_raster_product(path)
     else:
         try:
             arr = rioxarray.open_rasterio(path, chunks={"band": 1, "y": chunks, "x": chunks}, masked=True)

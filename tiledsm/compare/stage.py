@@ -231,12 +231,20 @@ def _vertical_block(block, coreg: Coregistration, block_info=None):
 
 
 def difference_lazy(pair: AlignedPair, coreg: Coregistration, kernel: str = "cubic") -> da.Array:
-    """``dh = other_corrected - ref`` as a dask array (float32, metres).
+    """``dh = other_corrected - ref`` as a dask array (float32, metres)
+    (see :func:`corrected_lazy`)."""
+    return (corrected_lazy(pair, coreg, kernel) - pair.ref.data).astype(np.float32)
 
-    The other DSM is shifted by ``(coreg.dy_px, coreg.dx_px)`` with
+
+def corrected_lazy(pair: AlignedPair, coreg: Coregistration, kernel: str = "cubic") -> da.Array:
+    """The other DSM corrected by ``coreg`` on the common grid, as a dask
+    array (float32, metres).
+
+    It is shifted by ``(coreg.dy_px, coreg.dx_px)`` with
     :func:`~tiledsm.compare.coreg.shift_array` in a ``map_overlap`` whose
-    halo is :func:`~tiledsm.compare.coreg.shift_halo`; cells whose
-    interpolation support leaves the common grid are NaN.
+    halo is :func:`~tiledsm.compare.coreg.shift_halo` (cells whose
+    interpolation support leaves the common grid are NaN), then the
+    vertical correction is added.
     """
     other = pair.other.data
     if coreg.dx_px or coreg.dy_px:
@@ -247,7 +255,7 @@ def difference_lazy(pair: AlignedPair, coreg: Coregistration, kernel: str = "cub
         )
     if coreg.dz or coreg.ramp_col or coreg.ramp_row:
         other = da.map_blocks(_vertical_block, other, coreg, dtype=np.float32, meta=np.empty((0, 0), np.float32))
-    return (other - pair.ref.data).astype(np.float32)
+    return other.astype(np.float32)
 
 
 def _slope_block(z, crs, transform, row0s, depth, block_info=None):

@@ -46,7 +46,7 @@ from tiledsm.io.cameras import find_camera, read_rpc
 from tiledsm.io.grids import grid_like
 from tiledsm.io.scenes import open_scene, scene_rpc
 from tiledsm.io.atomic import atomic_path, withdraw
-from tiledsm.io.stores import write_zarr, open_product, ChunkStore, create_store, write_blocks, write_resumable
+from tiledsm.io.stores import write_zarr, open_product, open_raster_product, ChunkStore, create_store, write_blocks, write_resumable
 from tiledsm.io.export import write_cog, write_geotiff_with_rpc
 
 __all__ = [
@@ -59,6 +59,7 @@ __all__ = [
     "withdraw",
     "write_zarr",
     "open_product",
+    "open_raster_product",
     "write_cog",
     "write_geotiff_with_rpc",
     "ChunkStore",

@@ -166,6 +166,27 @@ def open_product(
     return da
 
 
+def open_raster_product(path: str | os.PathLike) -> xr.DataArray:
+    """The 2-D raster of a tiledsm ``.zarr`` store, lazily: the store's
+    DataArray, or a Dataset's ``height`` variable (its only 2-D variable
+    otherwise), e.g. ``dsm.zarr`` of a DSM run.
+
+    Raises
+    ------
+    InputFileError
+        Not a readable store (:func:`open_product`), or no 2-D variable.
+    """
+    obj = open_product(path)
+    if isinstance(obj, xr.Dataset):
+        names = [n for n, v in obj.data_vars.items() if v.ndim == 2]
+        if not names:
+            raise InputFileError(f"{path}: zarr store holds no 2-D raster (variables: {', '.join(map(str, obj.data_vars))})")
+        obj = obj["height" if "height" in names else names[0]]
+    if obj.ndim != 2:
+        raise InputFileError(f"{path}: expected a 2-D raster, the store holds a {obj.ndim}-D array")
+    return obj
+
+
 # --------------------------------------------------------------------------- resumable stores
 @dataclass(frozen=True)
 class ChunkStore:

@@ -285,15 +285,33 @@ def new_plan(command: str, out: str | os.PathLike, cluster=None, *, limits: Limi
 
 
 def raster_header(path: str, name: str) -> dict:
-    """CRS, bounds, shape and dtype of a raster; errors name ``name``."""
+    """CRS, bounds, shape and dtype of a raster (a GDAL raster, or a
+    ``.zarr`` store of tiledsm holding a 2-D variable); errors name
+    ``name``."""
     import rasterio
 
+    if Path(path).is_dir():
+        a = store_raster(path, name)
+        return {"crs": a.rio.crs, "bounds": tuple(a.rio.bounds()), "shape": a.rio.shape,
+                "dtype": str(a.dtype), "res": abs(a.rio.resolution()[0])}
     try:
         with rasterio.open(path) as src:
             return {"crs": src.crs, "bounds": tuple(src.bounds), "shape": (src.height, src.width),
                     "dtype": src.dtypes[0], "res": abs(src.transform.a)}
     except rasterio.errors.RasterioIOError as exc:
         raise InputFileError(f"{path}: {name}: not a readable raster ({exc})") from exc
+
+
+def store_raster(path: str, name: str):
+    """The 2-D raster of a tiledsm ``.zarr`` store
+    (:func:`tiledsm.io.open_raster_product`), which must have a CRS
+    (that error names ``name`` too)."""
+    from tiledsm.io import open_raster_product
+
+    a = open_raster_product(path)  # its errors name the path
+    if a.rio.crs is None:
+        raise InputFileError(f"{path}: {name}: the store's raster has no CRS")
+    return a
 
 
 def overlap_fraction(bounds: Sequence[float], crs, grid) -> float:

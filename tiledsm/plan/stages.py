@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any
 
 from tiledsm.errors import (
@@ -11,7 +12,9 @@ from tiledsm.errors import (
     InvalidOptionError,
     NoOverlapError,
 )
-from tiledsm.plan.core import InputInfo, Plan, existing_file, format_bounds, new_plan, overlap_fraction, raster_header, readable_raster
+from tiledsm.plan.core import (
+    InputInfo, Plan, existing_file, format_bounds, new_plan, overlap_fraction, raster_header, readable_raster, store_raster,
+)
 from tiledsm.plan.dsm import grid_text, refuse_or_warn
 from tiledsm.plan.recipes import polygons_touch, check_sr_weights
 
@@ -100,7 +103,7 @@ def plan_compare(ref: str, other: str, out: str, *, stable_mask: str | None, chu
     (ref_p, rh), (oth_p, oh) = heads["REF"], heads["OTHER"]
     from tiledsm.io.grids import grid_like
 
-    grid = grid_like(ref_p, chunk=chunks)
+    grid = grid_like(store_raster(ref_p, "REF") if Path(ref_p).is_dir() else ref_p, chunk=chunks)
     frac = overlap_fraction(oh["bounds"], oh["crs"], grid)
     refuse_or_warn(plan, frac, NoOverlapError(f"{oth_p}: OTHER: has no ground in common with REF {ref_p}"),
                     f"{oth_p}: OTHER covers only {frac:.0%} of REF's grid")

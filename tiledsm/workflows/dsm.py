@@ -96,7 +96,7 @@ def run_dsm(
         from tiledsm.compare.accuracy import reference_accuracy
 
         metrics["reference"] = str(reference)
-        metrics["vs_reference"], error = reference_accuracy(height, reference, chunks=grid_chunk(height))
+        metrics["vs_reference"], error = reference_accuracy(height, reference, chunks=grid_chunk(height), coregister=True)
         if recipe.output.quicklook:
             from tiledsm.quicklook import quicklook
 
