@@ -10,7 +10,9 @@ quarter of the images); the true DSM vs the true DSM plus 1 m of white
 Gaussian noise (SR-S CS, SR-R CS, SR-O square/gauss1 CS, all images; the
 noisy-DSM orthos without occlusion masking, which would hide ~85 % of the
 cells behind the noise's spikes); and
-the shipped single-image CNNs (x2 only) on the reference image's LR ortho.
+the single-image models on the reference image's LR ortho: bicubic and the
+shipped CNNs (x2 weights; at x4, without x4 weights, the x2 network applied
+twice: the row's ``scheme``).
 Rows are made by :func:`tiledsm.workflows.ortho_sr.run_method` (the
 ``ortho_sr`` workflow's own code). Writes ``benchmarks/results/ortho_sr.json``
 (rows, the expected orderings and whether they hold, with the numbers) and
@@ -30,11 +32,11 @@ import numpy as np
 
 from tiledsm.misr.methods import SRInputs, _radii
 from tiledsm.misr.metrics import resolved_px
-from tiledsm.sr.registry import MODELS, WEIGHTLESS, weights_path
+from tiledsm.sr.registry import MODELS, weight_chain
 from tiledsm.synth.uav import UAVParams, make_uav_scene
 from tiledsm.workflows.ortho_sr import MISRSpec, Row, noisy_dsm, planned_rows, record, run_method, score
 
-CNNS = [m for m in MODELS.names() if m not in WEIGHTLESS]
+CNNS = MODELS.names()  # bicubic first: the single-image baseline
 
 
 def pick_radii(radii: np.ndarray) -> list[float]:
@@ -59,8 +61,9 @@ def run_scale(scale: int, args) -> tuple[list[dict], dict]:
     info = {"scene_s": time.perf_counter() - t0, "radii_mm": radii,
             "focal_plane_radii_mm": sorted(round(float(v), 3) for v in _radii(base)),
             "truth_resolved_px": resolved_px(sc.truth, sc.chart)}
-    have = [m for m in CNNS if weights_path(m, scale).exists()]
-    info["cnn"] = {m: ("shipped x%d weights" % scale if m in have else "no weights") for m in CNNS}
+    chains = {m: weight_chain(m, scale) for m in CNNS}
+    have = [m for m in CNNS if chains[m] is not None]
+    info["cnn"] = {m: "no weights" if c is None else " then ".join(f"x{s}" for s in c) for m, c in chains.items()}
     main = MISRSpec(scale=scale, sr_s=["cr", "cs"], sr_r=["nn", "bl", "cr", "cs"], sr_o=["cr", "cs"],
                     psfs=["square", "gauss1", "gauss2", "gauss3"], radii=[None, *radii], dsm_noise=[0.0], cnn=have,
                     max_iter=args.max_iter, chunk=args.chunk)
@@ -136,7 +139,8 @@ def table(rows: list[dict], cnn_info: dict) -> str:
              "| PSNR raw (dB) | valid (%) |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         rad = "all" if r["radius_mm"] is None else f"{r['radius_mm']:g}"
-        lines.append(f"| x{r['scale']} | {r['method']} | {r['kernel'].upper()} | {r['psf'] or '–'} | {r['images']} | "
+        method = f"{r['method']} ({r['scheme']})" if r.get("scheme") else r["method"]
+        lines.append(f"| x{r['scale']} | {method} | {r['kernel'].upper()} | {r['psf'] or '–'} | {r['images']} | "
                      f"{rad} | {r['dsm_noise_m']:g} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['resolved_px']} | "
                      f"{r['psnr_raw']:.2f} | {100 * r['valid']:.1f} |")
     for s, info in cnn_info.items():

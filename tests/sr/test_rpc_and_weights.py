@@ -9,7 +9,7 @@ import xarray as xr
 
 from tiledsm.geometry import RPC
 from tiledsm.sr import load_pretrained, psnr, ssim, super_resolve
-from tiledsm.sr.registry import available_weights, weights_path
+from tiledsm.sr.registry import available_weights, weight_chain, weights_path
 from tiledsm.sr.train import HELD_OUT, evaluate, skimage_images
 
 
@@ -66,3 +66,14 @@ def test_trained_srcnn_beats_bicubic_on_pleiades_12bit(shared_data):
     s = {k: ssim(hr, v, bit_depth=12, border=2) for k, v in sr.items()}
     assert p["srcnn"] > p["bicubic"] + 0.3, p
     assert s["srcnn"] > s["bicubic"], s
+
+
+def test_weight_chain_uses_native_weights_else_x2_repeatedly(tmp_path):
+    assert weight_chain("srcnn", 3, tmp_path) is None and weight_chain("srcnn", 4, tmp_path) is None
+    weights_path("srcnn", 2, tmp_path).touch()
+    assert weight_chain("srcnn", 2, tmp_path) == (2,)
+    assert weight_chain("srcnn", 4, tmp_path) == (2, 2) and weight_chain("srcnn", 8, tmp_path) == (2, 2, 2)
+    assert weight_chain("srcnn", 3, tmp_path) is None and weight_chain("srcnn", 6, tmp_path) is None
+    weights_path("srcnn", 4, tmp_path).touch()
+    assert weight_chain("srcnn", 4, tmp_path) == (4,)
+    assert weight_chain("bicubic", 4, tmp_path) == (4,)  # needs no weights

@@ -81,6 +81,21 @@ def weights_path(name: str, scale: int, folder: Path = WEIGHTS_DIR) -> Path:
     return Path(folder) / f"{name}_x{int(scale)}.pt"
 
 
+def weight_chain(name: str, scale: int, folder: Path = WEIGHTS_DIR) -> tuple[int, ...] | None:
+    """The shipped scales that make ``scale`` for model ``name``:
+    ``(scale,)`` when it has weights for ``scale`` (or needs none), else
+    ``(2, 2, ...)`` when ``scale`` is a power of two and the x2 weights
+    exist (the network applied repeatedly, a stated substitute for
+    missing native weights), else ``None``."""
+    scale = int(scale)
+    if name in WEIGHTLESS or weights_path(name, scale, folder).exists():
+        return (scale,)
+    n = scale.bit_length() - 1
+    if scale > 2 and scale == 1 << n and weights_path(name, 2, folder).exists():
+        return (2,) * n
+    return None
+
+
 def available_weights(folder: Path = WEIGHTS_DIR) -> list[tuple[str, int]]:
     """``(name, scale)`` pairs with a weights file in ``folder``."""
     out = []

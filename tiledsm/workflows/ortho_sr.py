@@ -230,16 +230,31 @@ def lr_ortho(inputs, index: int, kernel: str) -> np.ndarray:
 def cnn_ortho(lr: np.ndarray, model: str, scale: int, *, srmd_blur_sigma: float = 1.0) -> np.ndarray:
     """``lr`` (DN 0..255) super-resolved ``scale`` times by a shipped network
     (:func:`tiledsm.sr.infer.sr_array`; NaN filled with the mean first and
-    put back on the covered cells)."""
+    put back on the covered cells). Without native weights for ``scale``
+    the x2 network runs repeatedly (:func:`tiledsm.sr.registry.weight_chain`;
+    SRMD with the same degradation map at each pass)."""
     from tiledsm.sr.infer import resolve_model, sr_array
+    from tiledsm.sr.registry import weight_chain
 
-    net = resolve_model(model, scale)
+    chain = weight_chain(model, scale)
+    if chain is None:
+        raise OrthoSRError(f"misr.cnn: no weights for {model!r} at x{scale} (nor x2 weights to apply twice)")
     nan = ~np.isfinite(lr)
     img = np.where(nan, np.nanmean(lr), lr)
     kw = {"blur_sigma": srmd_blur_sigma, "noise": 0.0} if model == "srmd" else {}
-    out = sr_array(img, net, value_scale=255.0, **kw)
-    out[np.repeat(np.repeat(nan, scale, axis=0), scale, axis=1)] = np.nan
-    return out
+    for s in chain:
+        img = sr_array(img, resolve_model(model, s), value_scale=255.0, **kw)
+    img[np.repeat(np.repeat(nan, scale, axis=0), scale, axis=1)] = np.nan
+    return img
+
+
+def cnn_scheme(model: str, scale: int) -> str | None:
+    """How a CNN row reaches ``scale``: ``"x2 applied twice"`` (or more)
+    when it has no native weights, ``None`` when it has."""
+    from tiledsm.sr.registry import weight_chain
+
+    chain = weight_chain(model, scale)
+    return None if chain is None or len(chain) == 1 else f"x{chain[0]} applied {len(chain)} times"
 
 
 def align_to(truth: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
@@ -292,6 +307,8 @@ def record(row: Row, rep: dict, scores: dict, scale: int) -> dict:
     out = {"method": row.method, "kernel": row.kernel, "psf": row.psf, "images": int(rep["images"]), "scale": scale,
            "radius_mm": row.radius_mm, "dsm_noise_m": row.dsm_noise_m, **scores,
            "iterations": rep.get("iterations"), "reference": int(rep["reference"])}
+    if rep.get("scheme"):
+        out["scheme"] = rep["scheme"]
     if row.method in ("SR-R", "SR-O") and out["images"] < 2:
         out["warning"] = f"ECC registered {out['images']} image(s) to the reference: no multi-image SR happened"
     return out
@@ -311,7 +328,8 @@ def run_method(inputs, row: Row, misr: MISRSpec) -> tuple[np.ndarray, dict]:
         return sr_o(inputs, psf_from_label(row.psf), row.kernel, idx, max_iter=misr.max_iter, te=misr.te)
     ref = reference_index(inputs)
     lr = lr_ortho(inputs, ref, row.kernel)
-    return cnn_ortho(lr, row.method, inputs.scale, srmd_blur_sigma=misr.srmd_blur_sigma), {"reference": ref, "images": 1}
+    rep = {"reference": ref, "images": 1, "scheme": cnn_scheme(row.method, inputs.scale)}
+    return cnn_ortho(lr, row.method, inputs.scale, srmd_blur_sigma=misr.srmd_blur_sigma), rep
 
 
 def planned_rows(misr: MISRSpec) -> list[Row]:
@@ -347,7 +365,8 @@ def markdown_report(metrics: dict) -> str:
     ]
     for r in metrics["rows"]:
         rad = "all" if r["radius_mm"] is None else f"{r['radius_mm']:g}"
-        lines.append(f"| {r['method']} | {r['kernel'].upper()} | {r['psf'] or '–'} | {r['images']} | {rad} | "
+        method = f"{r['method']} ({r['scheme']})" if r.get("scheme") else r["method"]
+        lines.append(f"| {method} | {r['kernel'].upper()} | {r['psf'] or '–'} | {r['images']} | {rad} | "
                      f"{r['dsm_noise_m']:g} | {_fmt(r['psnr'], '.2f')} | {_fmt(r['ssim'], '.4f')} | "
                      f"{r['resolved_px'] if r['resolved_px'] is not None else '–'} | {100 * r['valid']:.1f} | "
                      f"{r.get('iterations') or '–'} |")
@@ -374,7 +393,7 @@ def run_ortho_sr(recipe: OrthoSRRecipe, out: Path, cluster: ClusterConfig | None
     from tiledsm.ortho.stage import write_ortho_products
     from tiledsm.workflows.common import write_json
     from tiledsm.io import atomic_path
-    from tiledsm.sr.registry import WEIGHTLESS, weights_path
+    from tiledsm.sr.registry import weight_chain
     from tiledsm.synth.uav import UAVParams, make_uav_scene
 
     t_start = time.perf_counter()
@@ -392,10 +411,9 @@ def run_ortho_sr(recipe: OrthoSRRecipe, out: Path, cluster: ClusterConfig | None
     products = out / "products"
     with compute_context(cluster):
         for row in planned_rows(m):
-            if row.method not in ("SR-S", "SR-R", "SR-O") and row.method not in WEIGHTLESS \
-                    and not weights_path(row.method, m.scale).exists():
+            if row.method not in ("SR-S", "SR-R", "SR-O") and weight_chain(row.method, m.scale) is None:
                 if not any(s["method"] == row.method for s in skipped):
-                    skipped.append({"method": row.method, "why": f"no weights at x{m.scale}"})
+                    skipped.append({"method": row.method, "why": f"no weights at x{m.scale} (nor x2 to apply twice)"})
                 continue
             t0 = time.perf_counter()
             try:
