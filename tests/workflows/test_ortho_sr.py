@@ -17,7 +17,7 @@ from tiledsm.cluster import ClusterConfig
 from tiledsm.errors import RecipeError
 from tiledsm.pipelines import load_recipe, run_recipe
 from tiledsm.synth.uav import UAVParams, make_uav_scene
-from tiledsm.workflows.ortho_sr import MISRSpec, Row, align_to, noisy_dsm, planned_rows
+from tiledsm.workflows.ortho_sr import MISRSpec, OrthoSRRecipe, Row, align_to, noisy_dsm, planned_rows
 
 RECIPE = Path(__file__).resolve().parents[2] / "recipes" / "uav_sr.yaml"
 SYNC = ClusterConfig(scheduler="synchronous", progress=False)
@@ -141,3 +141,70 @@ def test_cnn_rows_at_x4_apply_the_x2_network_twice():
     np.testing.assert_array_equal(img[ok], twice[ok])
     # measured 19.53 vs 19.18 dB
     assert rec["psnr"] > rows["bicubic"][1]["psnr"] + 0.2
+
+
+@pytest.mark.slow  # ~17 s: three runs of the 16-frame block
+def test_a_block_of_files_gives_the_synthetic_rows(tmp_path):
+    """``input.block``: the synthetic block written as files (frames,
+    cameras.yaml, DSM and truth GeoTIFFs) and read back by the recipe
+    gives the rows of the in-memory synthetic run (oracle: that run); with
+    no truth the products are written and not scored."""
+    from tiledsm.synth.uav import write_uav_scene
+
+    synth = load_recipe(RECIPE).input.synth.model_dump()
+    misr = {"scale": 2, "sr_s": ["cs"], "sr_r": [], "sr_o": ["cs"], "psfs": ["square"], "max_iter": 3}
+    base = {"pipeline": "ortho_sr", "misr": misr, "output": {"cog": False, "quicklook": False}}
+    ref = run_recipe(OrthoSRRecipe.model_validate(dict(base, input={"synth": synth})), tmp_path / "synth", SYNC)
+    sc = make_uav_scene(UAVParams(scale=2, **synth))
+    paths = write_uav_scene(sc, tmp_path / "files")
+    block = {"images": [str(p) for p in paths["frames"]], "cameras": str(paths["cameras"]),
+             "dsm": str(paths["truth_dsm"]), "bounds": list(sc.grid.bounds), "resolution": sc.grid.resolution}
+    got = run_recipe(OrthoSRRecipe.model_validate(dict(base, input={"block": {**block, "truth": str(paths["truth_ortho"])}})),
+                     tmp_path / "block", SYNC)
+    assert [(r["method"], r["images"], r["reference"]) for r in got["rows"]] == \
+        [(r["method"], r["images"], r["reference"]) for r in ref["rows"]]
+    assert [(r["method"], r["images"]) for r in got["rows"]] == [("SR-S", 1), ("SR-O", 16)]
+    for a, b in zip(got["rows"], ref["rows"]):
+        # measured: equal to 1e-6 dB (the DSM written as float32)
+        assert a["psnr"] == pytest.approx(b["psnr"], abs=1e-4) and a["ssim"] == pytest.approx(b["ssim"], abs=1e-5)
+        assert a["shift_px"] == b["shift_px"] and a["resolved_px"] is None  # no chart in a block of files
+    assert got["input"]["synth"] is False and got["input"]["frames"] == 16
+    bare = run_recipe(OrthoSRRecipe.model_validate(dict(base, input={"block": block})), tmp_path / "bare", SYNC)
+    assert bare["truth"] is None and all(r["psnr"] is None and r["valid"] > 0.97 for r in bare["rows"])
+    assert "not scored" in (tmp_path / "bare" / "report.md").read_text()
+    assert (tmp_path / "bare" / "products" / f"{Row('SR-O', 'cs', 'square', None, 0.0).slug}.zarr").exists()
+
+
+@pytest.mark.parametrize("change, match", [
+    ({"cameras": "missing.yaml"}, r"missing\.yaml"),
+    ({"bounds": [0.0, 0.0, 1.0, 1.0]}, r"truth_dsm\.tif: input\.block\.dsm: covers"),
+    ({"images": ["extra_frame.tif"]}, r"cameras\.yaml: images: no entry for extra_frame\.tif"),
+    ({"resolution": 0.015}, r"multiples of the scale 2"),
+    ({"dsm": "dsm_32632.tif"}, r"dsm_32632\.tif: input\.block\.dsm: CRS EPSG:32632 is not the cameras' EPSG:32631"),
+])
+def test_a_block_of_files_refuses_bad_input(tmp_path, change, match):
+    from tiledsm.errors import TiledsmError
+    from tiledsm.synth.uav import write_uav_scene
+
+    sc = make_uav_scene(UAVParams(scale=2, **load_recipe(RECIPE).input.synth.model_dump()))
+    paths = write_uav_scene(sc, tmp_path / "files")
+    block = {"images": [str(p) for p in paths["frames"]], "cameras": str(paths["cameras"]),
+             "dsm": str(paths["truth_dsm"]), "bounds": list(sc.grid.bounds), "resolution": sc.grid.resolution}
+    if "images" in change:  # a readable frame the camera file does not list
+        import shutil
+
+        shutil.copy(paths["frames"][0], tmp_path / "extra_frame.tif")
+        change = {"images": [str(tmp_path / "extra_frame.tif")]}
+    if "dsm" in change:  # the same heights labelled with another CRS
+        import rasterio
+
+        with rasterio.open(paths["truth_dsm"]) as src:
+            prof, z = src.profile, src.read(1)
+        with rasterio.open(tmp_path / "dsm_32632.tif", "w", **{**prof, "crs": "EPSG:32632"}) as dst:
+            dst.write(z, 1)
+    block.update({k: (str(tmp_path / v) if k in ("cameras", "dsm") else v) for k, v in change.items()})
+    recipe = OrthoSRRecipe.model_validate({"pipeline": "ortho_sr", "input": {"block": block},
+                                           "misr": {"sr_r": [], "sr_o": []}})
+    with pytest.raises(TiledsmError, match=match):
+        run_recipe(recipe, tmp_path / "o", SYNC)
+    assert not (tmp_path / "o" / "metrics.json").exists()

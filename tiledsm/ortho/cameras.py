@@ -180,7 +180,13 @@ def read_cameras_yaml(path: str | os.PathLike) -> dict[str, FrameCamera]:
 def camera_for_image(cameras_file: str | os.PathLike, image: str | os.PathLike) -> FrameCamera:
     """The camera of ``image`` in a YAML block file (matched by resolved
     path, then by file name)."""
-    cams = read_cameras_yaml(cameras_file)
+    return match_camera(read_cameras_yaml(cameras_file), image, cameras_file)
+
+
+def match_camera(cams: Mapping[str, FrameCamera], image: str | os.PathLike,
+                 cameras_file: str | os.PathLike) -> FrameCamera:
+    """The camera of ``image`` among a block file's cameras
+    (:func:`read_cameras_yaml`): by resolved path, then by file name."""
     img = Path(image).resolve()
     if str(img) in cams:
         return cams[str(img)]

@@ -130,7 +130,7 @@ class ImageSource:
 
             camera, _ = find_camera(p, None)
         try:
-            with _sensor_geometry(), rasterio.open(p) as ds:
+            with sensor_geometry(), rasterio.open(p) as ds:
                 shape = (ds.height, ds.width)
         except rasterio.errors.RasterioIOError as exc:
             raise InputFileError(f"{p}: not a readable raster ({exc})") from exc
@@ -144,12 +144,12 @@ class ImageSource:
         import rasterio
         from rasterio.windows import Window
 
-        with _sensor_geometry(), rasterio.open(self.path) as ds:
+        with sensor_geometry(), rasterio.open(self.path) as ds:
             arr = ds.read(self.band, window=Window(c0, r0, c1 - c0, r1 - r0), masked=True)
         return arr.astype(np.float32).filled(np.nan)
 
 
-def _sensor_geometry():
+def sensor_geometry():
     """Silence rasterio's warning for images without georeference (by design)."""
     import warnings
     from contextlib import contextmanager

@@ -46,7 +46,8 @@ def plan_recipe(
 
 
 #: recipe fields that hold input file paths (outputs such as ``train.out`` are not)
-_INPUT_KEYS = {"images", "rpcs", "reference", "like", "geoid", "stable_mask", "dem", "truth_dh", "truth_mask"}
+_INPUT_KEYS = {"images", "rpcs", "reference", "like", "geoid", "stable_mask", "dem", "truth_dh", "truth_mask",
+               "cameras", "dsm", "truth"}
 
 
 def _recipe_files(data: Any, where: str) -> list[tuple[str, str]]:

@@ -151,10 +151,33 @@ class MISRSpec(StrictModel):
         return value
 
 
-class OrthoSRInput(StrictModel):
-    """Input block: the synthetic UAV scene (the only input so far)."""
+class BlockSpec(StrictModel):
+    """A real block from files (:func:`tiledsm.ortho.block.read_block`)."""
 
-    synth: UAVSynthSpec = UAVSynthSpec()
+    images: list[str] = Field(..., min_length=1, description="the frames (band 1, DN)")
+    cameras: str = Field(..., description="YAML block file with every image's frame camera")
+    dsm: str = Field(..., description="heights in the cameras' CRS and datum, covering the region")
+    bounds: tuple[float, float, float, float] = Field(..., description="region: left bottom right top, cameras' CRS")
+    resolution: float = Field(..., gt=0, description="HR cell, metres (LR GSD / misr.scale)")
+    truth: Optional[str] = Field(None, description="reference ortho on the region (scores); none: products only")
+
+
+class OrthoSRInput(StrictModel):
+    """Input block: the synthetic UAV scene (default) or a real block of
+    files (``block``), not both."""
+
+    synth: Optional[UAVSynthSpec] = None
+    block: Optional[BlockSpec] = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _one_source(cls, data):
+        if isinstance(data, dict):
+            if data.get("synth") is not None and data.get("block") is not None:
+                raise ValueError("give either 'synth' (a synthetic block) or 'block' (files), not both")
+            if data.get("block") is None and data.get("synth") is None:
+                data = {**data, "synth": {}}
+        return data
 
 
 class OrthoSRRecipe(StrictModel):
@@ -172,7 +195,7 @@ class OrthoSRRecipe(StrictModel):
     def _consistent(self):
         if self.output.geoid is not None:
             raise ValueError("output.geoid: ortho_sr writes images, not heights")
-        if self.input.synth.roi % self.misr.scale:
+        if self.input.synth is not None and self.input.synth.roi % self.misr.scale:
             raise ValueError(f"input.synth.roi: must be a multiple of misr.scale {self.misr.scale}, "
                              f"got {self.input.synth.roi}")
         return self
@@ -353,11 +376,13 @@ def markdown_report(metrics: dict) -> str:
     lines = [
         f"# Multi-image SR of orthoimages: {metrics['name']}",
         "",
-        f"Synthetic UAV block ({metrics['input']['frames']} frames), HR grid {metrics['grid']['resolution']:g} m "
+        f"{'Synthetic UAV' if metrics['input']['synth'] else 'UAV'} block ({metrics['input']['frames']} frames), "
+        f"HR grid {metrics['grid']['resolution']:g} m "
         f"(LR GSD / {metrics['scale']}), {metrics['grid']['width']} x {metrics['grid']['height']} cells. "
-        f"PSNR/SSIM against the true ortho (peak 255, {2 * metrics['scale']} cells cropped); resolved: narrowest "
-        "stripe group (HR cells) with Michelson contrast >= 0.1; scores after removing the products' common "
-        "georeferencing shift (the reference camera's pose error; `shift_px`, `psnr_raw` in metrics.json).",
+        + (f"PSNR/SSIM against the true ortho (peak 255, {2 * metrics['scale']} cells cropped); resolved: narrowest "
+           "stripe group (HR cells) with Michelson contrast >= 0.1; scores after removing the products' common "
+           "georeferencing shift (the reference camera's pose error; `shift_px`, `psnr_raw` in metrics.json)."
+           if metrics["truth"] is not None else "No reference ortho given: products only, not scored."),
         "",
         "| Method | Kernel | PSF | Images | Radius (mm) | DSM noise (m) | PSNR (dB) | SSIM | Resolved (px) | Valid (%) "
         "| Iter. |",
@@ -383,6 +408,52 @@ def _as_array(img: np.ndarray, grid: GroundGrid, attrs: dict) -> xr.DataArray:
     return a.rio.write_crs(grid.crs).rio.write_transform(grid.transform).chunk(grid.chunk)
 
 
+@dataclass(frozen=True)
+class LoadedBlock:
+    """What the runner works on: frames, cameras, the HR grid (chunks of
+    ``misr.chunk``), the DSM and truth on it (truth None: not scored), the
+    stripe chart (empty for real blocks) and ``about`` (for metrics.json)."""
+
+    frames: list
+    cameras: list
+    grid: GroundGrid
+    dsm: np.ndarray
+    truth: Optional[np.ndarray]
+    chart: list
+    about: dict
+
+
+def load_block(recipe: OrthoSRRecipe, out: Path) -> LoadedBlock:
+    """The synthetic block (written to ``out/scene``) or the files of
+    ``input.block``."""
+    m, sy, bl = recipe.misr, recipe.input.synth, recipe.input.block
+    if bl is not None:
+        from tiledsm.ortho.block import read_block
+
+        b = read_block(bl.images, bl.cameras, bl.dsm, bl.bounds, bl.resolution, chunk=m.chunk, truth=bl.truth,
+                       multiple=m.scale)
+        about = {"synth": False, "frames": len(b.frames), "images": b.names, "cameras": bl.cameras, "dsm": bl.dsm,
+                 "truth": bl.truth}
+        return LoadedBlock(b.frames, b.cameras, b.grid, b.dsm, b.truth, [], about)
+    from tiledsm.synth.uav import UAVParams, make_uav_scene
+
+    params = UAVParams(scale=m.scale, **sy.model_dump())
+    log.info("making the synthetic UAV block %s", params)
+    scene = make_uav_scene(params, out / "scene")
+    g = scene.grid
+    grid = GroundGrid(g.crs, g.x0, g.y0, g.resolution, g.width, g.height, m.chunk)
+    about = {"synth": True, "frames": len(scene.frames), "shape": [sy.rows, sy.cols]}
+    return LoadedBlock(scene.frames, scene.cameras, grid, scene.dsm, scene.truth, scene.chart, about)
+
+
+def unscored(image: np.ndarray, scale: int) -> dict:
+    """The scores of a product without a truth: only ``valid`` (share of
+    finite cells, ``2 scale`` cells cropped)."""
+    b = 2 * scale
+    return {"valid": float(np.isfinite(image[b:-b, b:-b]).mean()), "psnr": None, "ssim": None,
+            "resolved_px": None, "shift_px": None, "psnr_raw": None, "ssim_raw": None}
+
+
 # ----------------------------------------------------------------- runner
 def run_ortho_sr(recipe: OrthoSRRecipe, out: Path, cluster: ClusterConfig | None = None,
                  overwrite: bool = False) -> dict:
@@ -394,16 +465,12 @@ def run_ortho_sr(recipe: OrthoSRRecipe, out: Path, cluster: ClusterConfig | None
     from tiledsm.workflows.common import write_json
     from tiledsm.io import atomic_path
     from tiledsm.sr.registry import weight_chain
-    from tiledsm.synth.uav import UAVParams, make_uav_scene
 
     t_start = time.perf_counter()
     cluster = cluster or recipe.cluster.config()
-    m, sy = recipe.misr, recipe.input.synth
-    params = UAVParams(scale=m.scale, **sy.model_dump())
-    log.info("making the synthetic UAV block %s", params)
-    scene = make_uav_scene(params, out / "scene")
-    grid = GroundGrid(scene.grid.crs, scene.grid.x0, scene.grid.y0, scene.grid.resolution, scene.grid.width,
-                      scene.grid.height, m.chunk)
+    m = recipe.misr
+    scene = load_block(recipe, out)
+    grid = scene.grid
     sync = ClusterConfig(scheduler="synchronous", progress=False)  # products are in memory
     inputs = {n: SRInputs(scene.frames, scene.cameras, grid, noisy_dsm(scene.dsm, n, m.dsm_noise_seed), m.scale,
                           occlusion=m.occlusion) for n in m.dsm_noise}
@@ -428,20 +495,21 @@ def run_ortho_sr(recipe: OrthoSRRecipe, out: Path, cluster: ClusterConfig | None
             write_ortho_products(_as_array(img, grid, {"method": row.method, "kernel": row.kernel}), products,
                                  cluster=sync, cog=recipe.output.cog, quicklook=recipe.output.quicklook,
                                  name=row.slug)
-            rows.append({**record(row, rep, score(scene.truth, img, scene.chart, m.scale), m.scale), "time_s": dt,
+            scores = unscored(img, m.scale) if scene.truth is None else score(scene.truth, img, scene.chart, m.scale)
+            rows.append({**record(row, rep, scores, m.scale), "time_s": dt,
                          "product": str((products / f"{row.slug}.zarr").relative_to(out))})
             log.info("%s: %s", row.slug, rows[-1])
-    write_ortho_products(_as_array(scene.truth, grid, {"method": "truth"}), products, cluster=sync,
-                         cog=recipe.output.cog, quicklook=recipe.output.quicklook, name="truth")
+    truth = None
+    if scene.truth is not None:
+        write_ortho_products(_as_array(scene.truth, grid, {"method": "truth"}), products, cluster=sync,
+                             cog=recipe.output.cog, quicklook=recipe.output.quicklook, name="truth")
+        truth = {"resolved_px": resolved_px(scene.truth, scene.chart), "product": "products/truth.zarr"}
     timings["total_s"] = time.perf_counter() - t_start
     metrics = {
-        "pipeline": "ortho_sr", "name": recipe.name, "scale": m.scale,
-        "input": {"synth": True, "frames": len(scene.frames), "shape": [sy.rows, sy.cols]},
+        "pipeline": "ortho_sr", "name": recipe.name, "scale": m.scale, "input": scene.about,
         "grid": {"crs": grid.crs, "resolution": grid.resolution, "width": grid.width, "height": grid.height,
                  "chunk": grid.chunk},
-        "truth": {"resolved_px": resolved_px(scene.truth, scene.chart),
-                  "product": "products/truth.zarr"},
-        "rows": rows, "skipped": skipped, "timings": timings,
+        "truth": truth, "rows": rows, "skipped": skipped, "timings": timings,
     }
     with atomic_path(out / "report.md") as tmp:
         Path(tmp).write_text(markdown_report(metrics))
