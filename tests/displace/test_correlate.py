@@ -81,3 +81,33 @@ def test_offsets_up_to_search_are_found_by_the_widened_coarse_window():
     # the same offsets with the default search (8 px) are refused, not wrong
     small = correlate_windows(base, post, r, c, CorrelationParams(search=8))
     assert np.isnan(small[0]).mean() > 0.95
+
+
+def test_formal_errors_follow_the_true_errors():
+    """Rows 4-5 (the phase-plane fit's formal standard errors) grow with the
+    noise as the true errors do (their ratio stays put, which is what the
+    stable-terrain calibration of sigma needs), and per axis: a texture
+    blurred along x gives x the larger formal error, as it does the larger
+    true error."""
+    from scipy import ndimage
+
+    r, c = centres()
+    ratios, formal = [], []
+    for noise in (1.0, 4.0, 8.0):
+        rng = np.random.default_rng(5)
+        pre = texture() + rng.normal(size=(N, N)) * noise
+        post = fourier_shift(texture(), 0.3, -0.7) + rng.normal(size=(N, N)) * noise
+        out = correlate_windows(pre, post, r, c)
+        formal.append(np.nanmedian(out[5]))
+        ratios.append(np.nanstd(out[1] + 0.7) / formal[-1])
+    # measured: true / formal 0.141, 0.127, 0.130; formal 0.036, 0.154, 0.322 px
+    assert max(ratios) / min(ratios) < 1.2
+    assert formal[1] / formal[0] == pytest.approx(4.0, rel=0.15) and formal[2] / formal[1] == pytest.approx(2.0, rel=0.15)
+    base = ndimage.gaussian_filter(texture(), (0, 2.5), mode="wrap")
+    base = 100 + (base - base.mean()) / base.std() * 30
+    rng = np.random.default_rng(5)
+    out = correlate_windows(base + rng.normal(size=(N, N)) * 2,
+                            fourier_shift(base, 0.3, -0.7) + rng.normal(size=(N, N)) * 2, r, c)
+    # measured: true errors y / x 0.013 / 0.036 px, formal 0.112 / 0.202 px
+    assert np.nanstd(out[1] + 0.7) > 2 * np.nanstd(out[0] - 0.3)
+    assert np.nanmedian(out[5]) > 1.5 * np.nanmedian(out[4])

@@ -54,8 +54,9 @@ def test_sigmas_cover_most_true_errors(run3d):
     _, d = run3d
     for c in ("dE", "dN", "dU"):
         cov = d["truth"]["components"][c]["within_2_sigma"]
-        # measured 0.882-0.887 here (0.89-0.91 on the 768 px recipe); issue target 0.90-0.98, not yet met
-        assert 0.86 < cov < 0.98, (c, cov)
+        # issue target 0.90-0.98; measured here (512 px) dE 0.904, dN 0.904, dU 0.879 (on the 768 px recipe,
+        # benchmarks/displacement.py: 0.904, 0.933, 0.901); 0.88-0.89 for all while binned by phase coherence
+        assert (0.895 if c != "dU" else 0.87) < cov < 0.98, (c, cov)
     # the stated error of the slip is the size of its true error, not 10x smaller
     off = d["truth"]["offsets"]["along_strike"]
     assert off["stated_error"] > 0.3 * abs(off["error"])

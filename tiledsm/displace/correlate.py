@@ -203,6 +203,13 @@ def phase_plane_shift(pre_w: np.ndarray, post_w: np.ndarray, frequency_cut: floa
         Residual shift, pixels.
     coherence : ndarray
         ``|sum w exp(i (phase - model))| / sum w``, in ``[0, 1]``.
+    sigma_dy, sigma_dx : ndarray
+        Formal standard errors of ``dy``, ``dx`` (pixels): the weighted
+        phase residual's variance times the diagonal of the inverse normal
+        matrix (weights scaled to their sum), the least-squares precision
+        of the fit. They grow where the two windows' contents differ
+        beyond a shift (noise, resampling, a changed surface) and where
+        the window has little texture across that axis.
     """
     n, w, _ = pre_w.shape
     q = np.conj(np.fft.rfft2(pre_w)) * np.fft.rfft2(post_w)  # = |F|^2 exp(-i 2pi (k dy + l dx) / w)
@@ -233,7 +240,12 @@ def phase_plane_shift(pre_w: np.ndarray, post_w: np.ndarray, frequency_cut: floa
     coh = np.abs((wgt * np.exp(1j * (phi - model))).sum(1)) / np.maximum(tw, 1e-300)
     dy = np.where(ok, sy * scale, np.nan)
     dx = np.where(ok, sx * scale, np.nan)
-    return dy, dx, np.where(ok & (tw > 0), coh, 0.0)
+    res = np.angle(np.exp(1j * (phi - model)))  # wrapped to [-pi, pi]
+    s2 = (wgt * res * res).sum(1) / np.maximum(tw, 1e-300)
+    var_y, var_x = s2 * a22 / det * tw, s2 * a11 / det * tw
+    sig_y = np.where(ok, np.sqrt(var_y) * scale, np.nan)
+    sig_x = np.where(ok, np.sqrt(var_x) * scale, np.nan)
+    return dy, dx, np.where(ok & (tw > 0), coh, 0.0), sig_y, sig_x
 
 
 LANCZOS_A = 4
@@ -348,9 +360,11 @@ def correlate_windows(pre: np.ndarray, post: np.ndarray, rows: np.ndarray, cols:
     Returns
     -------
     ndarray
-        ``(4, n)`` float32: ``dy, dx`` (pixels, module conventions; NaN where
+        ``(6, n)`` float32: ``dy, dx`` (pixels, module conventions; NaN where
         unreliable), ``quality`` (phase coherence of the last fine pass),
-        ``texture`` (standard deviation of the ``pre`` window).
+        ``texture`` (standard deviation of the ``pre`` window), ``sigma_dy,
+        sigma_dx`` (formal standard errors of the last fine pass, pixels;
+        :func:`phase_plane_shift`).
     """
     pre = np.asarray(pre, np.float64)
     post = np.asarray(post, np.float64)
@@ -359,7 +373,7 @@ def correlate_windows(pre: np.ndarray, post: np.ndarray, rows: np.ndarray, cols:
     rows = np.asarray(rows, np.int64).ravel()
     cols = np.asarray(cols, np.int64).ravel()
     n = rows.size
-    out = np.full((4, n), np.nan, np.float32)
+    out = np.full((6, n), np.nan, np.float32)
     w, wc = params.window, params.coarse_window
     taper, taper_c = _taper(w), _taper(wc)
     for s in range(0, n, params.batch):
@@ -373,7 +387,7 @@ def correlate_windows(pre: np.ndarray, post: np.ndarray, rows: np.ndarray, cols:
         for _ in range(params.iterations):
             moved = shifted_windows(post, r, c, dy, dx, w)  # NaN outside or next to NaN
             fb, ok_m, _ = _prepare(moved, params.max_nodata, taper)
-            ry, rx, quality = phase_plane_shift(fa, fb, params.frequency_cut)
+            ry, rx, quality, sig_y, sig_x = phase_plane_shift(fa, fb, params.frequency_cut)
             ok &= ok_m & np.isfinite(ry)
             # a residual beyond half a pixel means the coarse pass locked on a wrong peak
             ok &= (np.abs(ry) < 0.75) & (np.abs(rx) < 0.75)
@@ -385,4 +399,6 @@ def correlate_windows(pre: np.ndarray, post: np.ndarray, rows: np.ndarray, cols:
         out[1, s:s + r.size] = np.where(ok, dx, np.nan)
         out[2, s:s + r.size] = quality
         out[3, s:s + r.size] = texture
+        out[4, s:s + r.size] = np.where(ok, sig_y, np.nan)
+        out[5, s:s + r.size] = np.where(ok, sig_x, np.nan)
     return out

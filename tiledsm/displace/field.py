@@ -67,7 +67,7 @@ def field_chunk(chunk: int, step: int) -> int:
 
 def _cells(pre: np.ndarray, post: np.ndarray, n_rows: int, n_cols: int, params: CorrelationParams,
            halo: int) -> np.ndarray:
-    """``(4, n_rows, n_cols)`` cells of one block: ``pre``/``post`` are the
+    """``(6, n_rows, n_cols)`` cells of one block: ``pre``/``post`` are the
     block's ortho pixels plus ``halo`` pixels on every side (NaN past the grid)."""
     s = params.step
     # window centres (GDAL coordinates of the block): the middle of each output cell
@@ -75,7 +75,7 @@ def _cells(pre: np.ndarray, post: np.ndarray, n_rows: int, n_cols: int, params: 
     cols = halo + (np.arange(n_cols) + 0.5) * s
     R, C = np.meshgrid(rows.astype(np.int64), cols.astype(np.int64), indexing="ij")
     out = correlate_windows(pre, post, R.ravel(), C.ravel(), params)
-    return out.reshape(4, n_rows, n_cols)
+    return out.reshape(6, n_rows, n_cols)
 
 
 def _field_block(pre, post, *, params: CorrelationParams, halo: int, block_info=None) -> np.ndarray:
@@ -164,7 +164,7 @@ def correlate_orthos(pre: xr.DataArray | str | Path, post: xr.DataArray | str | 
 
         cells = tuple(tuple(n // s for n in cs) for cs in da.core.normalize_chunks(c, (ny * s, nx * s)))
         raw = da.map_blocks(
-            _store_block, chunks=((4,), *cells), dtype=np.float32, meta=np.empty((0, 0, 0), np.float32),
+            _store_block, chunks=((6,), *cells), dtype=np.float32, meta=np.empty((0, 0, 0), np.float32),
             pre=stores[0], post=stores[1], shape=(ny * s, nx * s), params=params, halo=depth,
             name=f"correlate-{tokenize(stores, params, c)}",
         )
@@ -176,9 +176,9 @@ def correlate_orthos(pre: xr.DataArray | str | Path, post: xr.DataArray | str | 
         # dask's overlap needs chunks at least as deep as the halo
         if min(min(cs) for cs in arrays[0].chunks) < depth:
             arrays = [a.rechunk(max(c, depth + s - depth % s)) for a in arrays]
-        chunks_out = ((4,), tuple(n // s for n in arrays[0].chunks[0]), tuple(n // s for n in arrays[0].chunks[1]))
+        chunks_out = ((6,), tuple(n // s for n in arrays[0].chunks[0]), tuple(n // s for n in arrays[0].chunks[1]))
         # one map_overlap: every block sees `depth` pixels of its neighbours
-        # (NaN past the grid) and returns its (4, cells, cells)
+        # (NaN past the grid) and returns its (6, cells, cells)
         raw = da.map_overlap(
             _field_block, *arrays, depth=depth, boundary=np.nan, trim=False, align_arrays=False,
             new_axis=0, chunks=chunks_out, dtype=np.float32, meta=np.empty((0, 0, 0), np.float32),
@@ -193,6 +193,8 @@ def correlate_orthos(pre: xr.DataArray | str | Path, post: xr.DataArray | str | 
             "dN": (("y", "x"), raw[0] * np.float32(res_y)),
             "quality": (("y", "x"), raw[2]),
             "texture": (("y", "x"), raw[3]),
+            "formal_dE": (("y", "x"), raw[5] * np.float32(abs(res_x))),
+            "formal_dN": (("y", "x"), raw[4] * np.float32(abs(res_y))),
         },
         coords={"y": y, "x": x},
     )
@@ -203,6 +205,8 @@ def correlate_orthos(pre: xr.DataArray | str | Path, post: xr.DataArray | str | 
     ds["dN"].attrs.update(units="m", long_name="north displacement (post - pre)")
     ds["quality"].attrs.update(units="1", long_name="phase coherence of the correlation")
     ds["texture"].attrs.update(long_name="standard deviation of the pre window")
+    for n in ("dE", "dN"):
+        ds[f"formal_{n}"].attrs.update(units="m", long_name=f"formal standard error of {n} (phase-plane fit)")
     ds.attrs.update({f"correlation_{k}": v for k, v in vars(params).items()})
     return ds
 
