@@ -570,7 +570,7 @@ def format_table(rows: list[dict]) -> str:
             f"{f(s.get('median_m'), '.2f', 9)} {f(s.get('completeness'), '.3f', 7)} {f(wall, '.1f', 7)}"
         )
         c = row.get("coregistered")
-        if c:
+        if c and "nmad" in c:
             lines.append(f"{'  after co-registration (Nuth & Kaab):':44} offset {c['offset_east_m']:+.3f} m east, "
                          f"{c['offset_north_m']:+.3f} m north; NMAD {c['nmad']:.3f} m")
     lines.append(f"{'target':44} {'':7} {'<=0.010':>8} {'0 cells':>8} {'':9} {'<=0.5':>7} {'':7} {'':9} {'>=0.92':>7}")
@@ -630,6 +630,8 @@ def coregistered(h_da, reference: Path) -> dict:
 
     stats, _ = reference_accuracy(h_da, reference, coregister=True)
     c = stats["coregistered"]
+    if "error" in c:
+        return {"error": c["error"], "nmad_plain": stats["nmad"]}
     return {k: c[k] for k in ("offset_east_m", "offset_north_m", "nmad", "median", "rmse", "count")} | {"nmad_plain": stats["nmad"]}
 
 

@@ -70,3 +70,15 @@ def test_reference_accuracy_finds_where_the_dsm_lies(synth):
     assert stats["nmad"] > 1.0 and c["nmad"] < 0.025  # measured 1.017 and 0.019 m
     plain, _ = reference_accuracy(synth.to_dataarray(dsm).chunk(64), synth.to_dataarray(ref, "ref"), chunks=64)
     assert plain == {k: v for k, v in stats.items() if k != "coregistered"}
+
+
+def test_reference_accuracy_on_flat_ground_says_why_it_has_no_offset():
+    """Flat ground has no slope to fit an offset on: the co-registered part
+    says so and the plain statistics stand (a DSM run with --reference over
+    flat ground failed after its DSM was computed)."""
+    grid = GroundGrid("EPSG:32631", 500_000.0, 4_900_000.0, 0.5, 100, 100)
+    flat = np.full(grid.shape, 300.0)
+    noisy = flat + np.random.default_rng(0).normal(0, 0.1, grid.shape)
+    stats, _ = reference_accuracy(_grid_array(noisy, grid), _grid_array(flat, grid), coregister=True)
+    assert set(stats["coregistered"]) == {"error"} and "slope" in stats["coregistered"]["error"]
+    assert stats["nmad"] == pytest.approx(0.1, abs=0.01) and stats["completeness"] == 1.0

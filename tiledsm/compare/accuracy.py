@@ -81,7 +81,8 @@ def reference_accuracy(
         the DSM lies relative to the reference, metres), ``offset_px``
         (columns, rows), ``dz`` and the same statistics after the shift
         (but ``completeness``: the move's interpolation drops cells next
-        to holes).
+        to holes); only ``error`` (the reason) when no offset can be
+        fitted (flat ground, too few common cells).
     difference : xarray.DataArray
         The lazy ``dsm - reference`` on the common grid (for a quick-look);
         ``attrs["window"]`` is ``(row0, row1, col0, col1)`` of that grid in
@@ -104,7 +105,12 @@ def reference_accuracy(
     d = h - r
     stats = _statistics(d, r, keep, bins)
     if coregister:
-        stats["coregistered"] = _coregistered(pair, keep, chunks, bins)
+        from tiledsm.compare.coreg import CoregistrationError
+
+        try:
+            stats["coregistered"] = _coregistered(pair, keep, chunks, bins)
+        except CoregistrationError as exc:  # e.g. flat ground: no slope to fit an offset on; the plain stats stand
+            stats["coregistered"] = {"error": str(exc)}
     difference = pair.ref.copy(data=d)
     difference.attrs = {"long_name": "DSM - reference", "units": "m", "window": tuple(pair.ref_window)}
     return stats, difference
