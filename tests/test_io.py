@@ -233,6 +233,22 @@ def test_write_cog(tmp_path):
         assert RPC.from_gdal(src.rpcs.to_gdal()) == _s2p_rpc()
 
 
+def test_write_cog_threads_give_the_same_bytes(tmp_path):
+    """Tiles are compressed independently: GDAL's NUM_THREADS changes the
+    time, not one byte of the file (heights with noise and holes, so the
+    DEFLATE streams are not trivial)."""
+    g = GroundGrid("EPSG:32631", 600_000.0, 4_800_000.0, 1.0, width=1100, height=900, chunk=256)
+    rng = np.random.default_rng(1)
+    z = (2000 + np.cumsum(rng.normal(size=g.shape), axis=1)).astype(np.float32)
+    z[rng.random(g.shape) < 0.05] = np.nan
+    da = _ramp(g).copy(data=z)
+    one = write_cog(da, tmp_path / "one.tif", blocksize=256, threads=1)
+    many = write_cog(da, tmp_path / "many.tif", blocksize=256, threads=4)
+    assert one.read_bytes() == many.read_bytes()
+    with rasterio.open(many) as src:
+        np.testing.assert_array_equal(src.read(1), z)
+
+
 # ------------------------------------------------------------------ atomicity
 def test_atomic_path_failure_leaves_nothing_and_keeps_old(tmp_path):
     final = tmp_path / "out.zarr"
