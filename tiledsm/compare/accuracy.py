@@ -136,7 +136,6 @@ def _coregistered(pair: AlignedPair, keep: da.Array, chunks: int, bins: int) -> 
     moved, not the reference: a reference with many small holes (s2p's
     has 30 000) would lose most of its cells to the interpolation's
     support; bilinear, so a hole of the DSM grows by one cell at most."""
-    from tiledsm.compare.align import align_dsms
     from tiledsm.compare.coreg import CoregParams
     from tiledsm.compare.stage import CompareParams, corrected_lazy, fit_coregistration
     from tiledsm.compare.terrain import metric_steps

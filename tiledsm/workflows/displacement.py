@@ -168,10 +168,10 @@ def run_displacement(spec: DisplacementSpec, out: Path, *, pre_images, post_imag
     # from the stores: each task reads its own window (memory does not grow with the scene)
     field = correlate_orthos(pre_o, post_o, params, chunk=spec.chunk)
     with compute_context(cluster) as client:
-        layers = ("dE", "dN", "quality", "texture", "formal_dE", "formal_dN")
+        layers = ("dE", "dN", "quality", "formal_dE", "formal_dN")
         (raw,) = compute_with_progress(xr.concat([field[v] for v in layers], "band").data, config=cluster,
                                        client=client)
-    dE_raw, dN_raw, quality, texture, formal_dE, formal_dN = (np.asarray(raw[i], np.float64) for i in range(6))
+    dE_raw, dN_raw, quality, formal_dE, formal_dN = (np.asarray(raw[i], np.float64) for i in range(len(layers)))
     timings["correlation_s"] = time.perf_counter() - t0
     x, y = field.x.values, field.y.values
     transform, crs = field.rio.transform(), field.rio.crs

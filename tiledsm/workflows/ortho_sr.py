@@ -1,13 +1,17 @@
 """Multi-image super-resolution of UAV orthoimages: the ``ortho_sr`` workflow.
 
 The experiment of the UAV multi-image SR paper (SR-S, SR-R, SR-O; issue
-11) on a synthetic UAV block with truth (:mod:`tiledsm.synth.uav`), plus
-the project's single-image CNNs on one LR ortho, in one table.
+11) on a synthetic UAV block with truth (:mod:`tiledsm.synth.uav`) or on a
+block of the user's files (``input.block``), plus the project's
+single-image CNNs on one LR ortho, in one table.
 
 Steps (``pipeline: ortho_sr``), all under the run folder:
 
-1. the block: frames, nominal cameras, true HR ortho and DSM
-   (:func:`tiledsm.synth.uav.make_uav_scene`, written to ``scene/``);
+1. the block (:func:`load_block`): frames, nominal cameras, true HR ortho
+   and DSM (:func:`tiledsm.synth.uav.make_uav_scene`, written to
+   ``scene/``), or the files of ``input.block``
+   (:func:`tiledsm.ortho.block.read_block`; scored only when it names a
+   reference ortho, ``truth``);
 2. for each DSM of ``misr.dsm_noise`` (metres of Gaussian noise added to
    every HR cell of the true DSM; 0 = the true DSM) and each radius of
    ``misr.radii`` (focal-plane millimetres, :func:`radial_select`; None =
@@ -379,9 +383,11 @@ def markdown_report(metrics: dict) -> str:
         f"{'Synthetic UAV' if metrics['input']['synth'] else 'UAV'} block ({metrics['input']['frames']} frames), "
         f"HR grid {metrics['grid']['resolution']:g} m "
         f"(LR GSD / {metrics['scale']}), {metrics['grid']['width']} x {metrics['grid']['height']} cells. "
-        + (f"PSNR/SSIM against the true ortho (peak 255, {2 * metrics['scale']} cells cropped); resolved: narrowest "
-           "stripe group (HR cells) with Michelson contrast >= 0.1; scores after removing the products' common "
-           "georeferencing shift (the reference camera's pose error; `shift_px`, `psnr_raw` in metrics.json)."
+        + (f"PSNR/SSIM against the true ortho (peak 255, {2 * metrics['scale']} cells cropped); "
+           + ("resolved: narrowest stripe group (HR cells) with Michelson contrast >= 0.1; " if metrics["input"]["synth"]
+              else "")
+           + "scores after removing the products' common georeferencing shift (the reference camera's pose error; "
+           "`shift_px`, `psnr_raw` in metrics.json)."
            if metrics["truth"] is not None else "No reference ortho given: products only, not scored."),
         "",
         "| Method | Kernel | PSF | Images | Radius (mm) | DSM noise (m) | PSNR (dB) | SSIM | Resolved (px) | Valid (%) "
