@@ -88,6 +88,40 @@ def done_count(partial: Path) -> int | None:
         return None
 
 
+def done_array(store: Path) -> np.ndarray:
+    """The ``_progress/done`` markers of a resumable store (blocks)."""
+    import zarr
+
+    return np.asarray(zarr.open_array(store=str(store), path="_progress/done", mode="r")[...]).astype(bool)
+
+
+def _chunk_done(blocks: np.ndarray, i: int, j: int, side: int = 90) -> bool:
+    """Whether every store block under matching chunk ``(i, j)`` of
+    :data:`L0_CHUNKS` is done (a merged chunk covers two blocks per axis)."""
+    r0 = sum(L0_CHUNKS[:i])
+    c0 = sum(L0_CHUNKS[:j])
+    rows = range(r0 // side, -(-(r0 + L0_CHUNKS[i]) // side))
+    cols = range(c0 // side, -(-(c0 + L0_CHUNKS[j]) // side))
+    return bool(blocks[np.ix_(list(rows), list(cols))].all())
+
+
+def chunks_done(store: Path) -> int:
+    """Matching chunks of :data:`L0_CHUNKS` whose blocks are all done in
+    ``store`` (0 while it is not there or not readable)."""
+    try:
+        blocks = done_array(store)
+    except Exception:
+        return 0
+    return sum(_chunk_done(blocks, i, j) for i in range(len(L0_CHUNKS)) for j in range(len(L0_CHUNKS)))
+
+
+def zarr_shape(store: Path) -> tuple[int, ...]:
+    """Block layout of a resumable store (its ``_progress/done`` array)."""
+    import zarr
+
+    return tuple(zarr.open_array(store=str(store), path="_progress/done", mode="r").shape)
+
+
 def products(out: Path) -> dict[str, bytes]:
     """Bytes of the products a refused run must leave alone."""
     names = ("metrics.json", "recipe.resolved.yaml", "dsm.tif", "dsm.zarr/zarr.json")
@@ -117,13 +151,15 @@ def copy_of(finished: Path, tmp_path: Path) -> Path:
 
 
 # ------------------------------------------------------------------ 4. kill and resume
-# The default speckle filter needs a 150-cell halo at the finest level: on
-# this 384-cell grid every chunk then depends on nearly the whole level and
-# all 36 chunks are written within half a second at the very end (measured),
-# so no kill can land between them. A 20-cell speckle size keeps the halos
-# local, as they are on a real scene (chunks of 1024 cells); chunks are then
-# written over the last ~3 s of the run.
+# Every level is matched into a store in dsm.levels (tiledsm.dsm.stages) and
+# the DSM store is written from the finest one at the end, in well under a
+# second: the kill lands while the finest level is being matched, which is
+# where a run spends its time. A 20-cell speckle size (default 150) keeps
+# the final filter's halos local, as they are on a real scene.
 KILL_RECIPE_SPECKLE = 20
+#: the finest level's matching chunks on the 384-cell grid: chunk 64 is
+#: raised to the halos' floor of 90 cells, the last one merged (90, 90, 90, 114)
+L0_CHUNKS = (90, 90, 90, 114)
 
 
 def kill_recipe(scene, path: Path) -> Path:
@@ -145,26 +181,28 @@ def run_cmd(recipe_path: Path, out: Path) -> list[str]:
 
 
 def test_killed_run_resumes_its_finished_chunks(scene, tmp_path):
-    """SIGKILL a run once >= 3 of its 36 chunks are done; the same command
-    then computes only the missing chunks (metrics say how many it reused)
-    and gives exactly the DSM of an uninterrupted run."""
+    """SIGKILL a run once >= 2 chunks of its finest level are matched; the
+    same command then matches only the chunks not finished (metrics and
+    stdout say how many it reused) and gives exactly the DSM of an
+    uninterrupted run; the level stores are gone once the DSM is."""
     rec = kill_recipe(scene, tmp_path / "killed.yaml")
     out = tmp_path / "killed"
     cmd = run_cmd(rec, out)
     partial = out / "dsm.zarr.partial"
+    levels = out / "dsm.levels"
+    matching = levels / "L0.zarr.partial"
     with open(tmp_path / "first.log", "w") as log:
         p = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
         try:
             deadline = time.monotonic() + 180
             while True:
-                n = done_count(partial)
-                if n is not None and n >= 3:
+                if chunks_done(matching) >= 2:
                     break
                 if p.poll() is not None:
-                    pytest.fail(f"the run ended (rc {p.returncode}) before 3 chunks were seen done:\n"
+                    pytest.fail(f"the run ended (rc {p.returncode}) before 2 chunks were seen matched:\n"
                                 + (tmp_path / "first.log").read_text()[-3000:])
                 if time.monotonic() > deadline:
-                    pytest.fail("no 3 chunks done within 180 s")
+                    pytest.fail("no 2 chunks matched within 180 s")
                 time.sleep(0.02)
             os.killpg(p.pid, signal.SIGKILL)
         finally:
@@ -173,22 +211,33 @@ def test_killed_run_resumes_its_finished_chunks(scene, tmp_path):
             p.wait(timeout=30)
     assert p.returncode == -signal.SIGKILL
     # still partial, and nothing claims a finished run
-    assert partial.exists() and not (out / "dsm.zarr").exists()
+    assert partial.exists() and not (out / "dsm.zarr").exists() and done_count(partial) == 0
     assert not (out / "metrics.json").exists() and not (out / "recipe.resolved.yaml").exists()
-    k = done_count(partial)
-    assert k is not None and 3 <= k < TOTAL, k
+    # the coarse level was finished before the kill, the finest one partly
+    assert done_count(levels / "L1.zarr") == int(np.prod(zarr_shape(levels / "L1.zarr")))
+    k = chunks_done(matching)
+    total = len(L0_CHUNKS) ** 2
+    assert 2 <= k < total, k
     # the same command again (the dead run's lock file is stale and taken over)
     r = run(cmd)
     _ok(r)
     assert not partial.exists() and (out / "dsm.zarr").exists()
-    chunks = metrics(out)["timings"]["chunks"]
-    assert chunks == {"chunks_total": TOTAL, "chunks_reused": k, "chunks_computed": TOTAL - k}, chunks
-    assert f"reused {k} of {TOTAL} chunks" in r.stdout
+    assert not levels.exists(), "the level stores outlive the finished DSM"
+    timings = metrics(out)["timings"]
+    assert {n: timings["levels"]["L0"][n] for n in ("chunks_total", "chunks_reused")} == {
+        "chunks_total": total, "chunks_reused": k}, timings["levels"]
+    assert timings["levels"]["L1"]["chunks_reused"] == timings["levels"]["L1"]["chunks_total"]
+    assert timings["chunks"] == {"chunks_total": TOTAL, "chunks_reused": 0, "chunks_computed": TOTAL}
+    assert f"reused {k} of {total} matched chunks" in r.stdout
     # an uninterrupted run of the same recipe
     ref = tmp_path / "uninterrupted"
     r = run(run_cmd(rec, ref))
     _ok(r)
     assert metrics(ref)["timings"]["chunks"]["chunks_reused"] == 0
+    assert metrics(ref)["timings"]["levels"]["L0"]["chunks_reused"] == 0
+    # the resumed run counts the candidates of the chunks it reused too
+    assert metrics(ref)["timings"]["levels"] == {
+        name: {**rep, "chunks_reused": 0} for name, rep in timings["levels"].items()}
     h, c = heights(out)
     h_ref, c_ref = heights(ref)
     assert np.isfinite(h_ref).mean() > 0.8

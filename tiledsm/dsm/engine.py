@@ -27,6 +27,7 @@ def dsm_from_views(
     grid: GroundGrid,
     h_range: tuple[float, float],
     params: DSMParams = DSMParams(),
+    stage_dir: str | Path | None = None,
 ) -> xr.Dataset:
     """Lazy DSM of ``views`` on ``grid`` (coarse to fine).
 
@@ -35,6 +36,13 @@ def dsm_from_views(
     derived from the coarser level inside each task
     (:func:`level_array`). Every halo is derived from the parameters, so
     the result does not depend on the chunking.
+
+    With ``stage_dir``, every level is matched into a resumable store there
+    while the graph runs (:mod:`tiledsm.dsm.stages`) and the later tasks
+    (finer levels, the speckle filter) read their windows from it, so that
+    no worker holds results for its neighbours (the DSM is the same); the
+    folder must be reachable from every worker. Nothing is written before
+    the graph is computed.
 
     Returns
     -------
@@ -47,11 +55,21 @@ def dsm_from_views(
     if h_range[1] <= h_range[0]:
         raise MatchingError(f"empty height range {h_range}")
     levels = params.levels or auto_levels(views, grid, h_range, params)
-    arr = None
+    fp = dsm_fingerprint(views, grid, h_range, levels, params)
+    arr, staged = None, None
     for level in range(levels - 1, -1, -1):
         geom = level_geometry(views, grid, level, h_range, params)
         chunks = level_layout(geom.grid.shape, grid.chunk, params)
-        arr = level_array(views, geom, chunks, h_range, params, None if arr is None else arr[0])
+        if stage_dir is not None:
+            from tiledsm.dsm.stages import stage_level
+
+            staged = stage_level(views, geom, chunks, h_range, params, staged, Path(stage_dir), json.dumps(fp, sort_keys=True))
+        else:
+            arr = level_array(views, geom, chunks, h_range, params, None if arr is None else arr[0])
+    if staged is not None:
+        from tiledsm.dsm.stages import finest_from_stage
+
+        arr = finest_from_stage(staged, grid.chunks, params)
     arr = arr.rechunk(((2,), *grid.chunks))
     # the finest level is on `grid` itself; its chunks are the grid's
     ds = xr.Dataset(
@@ -66,7 +84,7 @@ def dsm_from_views(
     ds = ds.rio.write_crs(grid.crs).rio.write_transform(grid.transform)
     ds.attrs.update(
         views=[v.path for v in views], height_range_m=list(h_range), levels=levels, params=_params_dict(params),
-        fingerprint=json.dumps(dsm_fingerprint(views, grid, h_range, levels, params), sort_keys=True),
+        fingerprint=json.dumps(fp, sort_keys=True),
     )
     return ds
 
@@ -137,11 +155,13 @@ def dsm_from_pair(
     rpcs: Sequence[str | Path | None] | None = None,
     grid: GroundGrid | None = None,
     params: DSMParams = DSMParams(),
+    stage_dir: str | Path | None = None,
 ) -> tuple[xr.Dataset, dict]:
     """DSM of two (or more) images with RPCs; lazy.
 
     ``rpcs`` optionally gives each image's RPC file (``None`` entries: the
-    camera is found in the image or a sidecar). Returns the lazy dataset of
+    camera is found in the image or a sidecar); ``stage_dir`` is passed to
+    :func:`dsm_from_views`. Returns the lazy dataset of
     :func:`dsm_from_views` and a report (tie points, height range, relative
     correction, grid).
     """
@@ -150,4 +170,4 @@ def dsm_from_pair(
     if grid is None:
         grid = default_grid(views, h_range, params)
     report["grid"] = {"crs": grid.crs, "resolution": grid.resolution, "width": grid.width, "height": grid.height, "chunk": grid.chunk}
-    return dsm_from_views(views, grid, h_range, params), report
+    return dsm_from_views(views, grid, h_range, params, stage_dir=stage_dir), report

@@ -106,6 +106,7 @@ def match_cells(
     search: np.ndarray | None,
     h_range: tuple[float, float],
     params: DSMParams,
+    details: dict | None = None,
 ) -> np.ndarray:
     """Heights and confidence of the level cells ``cells = (row0, row1,
     col0, col1)`` (a chunk plus its halo), matched together.
@@ -113,6 +114,9 @@ def match_cells(
     ``search`` is ``(3, rows, cols)`` ``h_ref, lo, hi`` from the coarser
     level (:func:`tiledsm.match.pyramid.search_from_coarse`), or ``None``
     at the coarsest level (the whole ``h_range``, a horizontal sweep).
+    ``details``, if given, is filled by
+    :func:`~tiledsm.match.sgvll.match_block` (e.g. ``candidates``, the
+    candidate heights of each cell; left empty when nothing is matched).
 
     Returns
     -------
@@ -154,7 +158,7 @@ def match_cells(
     height, conf = match_block(
         images, rpcs, windows, sub.x, sub.y, sub.crs, lo, hi, kernel, step=geom.step, h_ref=h_ref,
         origin=(r0, c0), axes=(float(g.x[0]), float(g.y[0]), g.resolution, -g.resolution),
-        pair_weights=geom.pair_weights,
+        pair_weights=geom.pair_weights, details=details,
     )
     out[0], out[1] = height, conf
     return out
@@ -190,7 +194,7 @@ def level_layout(shape: tuple[int, int], chunk: int, params: DSMParams) -> tuple
     return tuple(level_chunks(int(n), side, floor) for n in shape)
 
 
-def _windows(chunks: tuple[int, ...], index: int, halo: int) -> tuple[int, int, int, int]:
+def chunk_window(chunks: tuple[int, ...], index: int, halo: int) -> tuple[int, int, int, int]:
     """``(start, stop, halo_start, halo_stop)`` of chunk ``index`` of an
     axis chunked as ``chunks``, the halo clipped to the axis."""
     start = sum(chunks[:index])
@@ -198,7 +202,7 @@ def _windows(chunks: tuple[int, ...], index: int, halo: int) -> tuple[int, int, 
     return start, stop, max(0, start - halo), min(sum(chunks), stop + halo)
 
 
-def _match_task(coarse, views, geom, chunks, halo, h_range, params, coarsest: bool, block_id=None) -> np.ndarray:
+def match_task(coarse, views, geom, chunks, halo, h_range, params, coarsest: bool, block_id=None, details=None) -> np.ndarray:
     """One chunk of a level: match it plus its halo, return the chunk.
 
     ``coarse`` is the coarser level's heights under the chunk, grown by
@@ -206,11 +210,13 @@ def _match_task(coarse, views, geom, chunks, halo, h_range, params, coarsest: bo
     :func:`coarse_blocks`): the chunk's search band over its halo is
     derived here (:func:`~tiledsm.match.pyramid.search_from_coarse`), which
     spares the graph a second overlapped array. At the coarsest level it
-    is a placeholder (the whole height range is searched)."""
+    is a placeholder (the whole height range is searched). ``details``, if
+    given, gets ``candidates``: the candidate heights of each cell of the
+    chunk (0 where none was searched)."""
     from tiledsm.match.pyramid import search_from_coarse, search_halo
 
-    r0, r1, hr0, hr1 = _windows(chunks[0], block_id[-2], halo)
-    c0, c1, hc0, hc1 = _windows(chunks[1], block_id[-1], halo)
+    r0, r1, hr0, hr1 = chunk_window(chunks[0], block_id[-2], halo)
+    c0, c1, hc0, hc1 = chunk_window(chunks[1], block_id[-1], halo)
     search = None
     if not coarsest:
         depth = search_halo(params.search)
@@ -220,7 +226,13 @@ def _match_task(coarse, views, geom, chunks, halo, h_range, params, coarsest: bo
         search = band[:, a : a + hr1 - hr0, b : b + hc1 - hc0]
         if search.shape[1:] != (hr1 - hr0, hc1 - hc0):
             raise MatchingError(f"internal: search block {search.shape} for cells {(hr0, hr1, hc0, hc1)}")
-    res = match_cells(views, geom, (hr0, hr1, hc0, hc1), search, h_range, params)
+    found: dict | None = {} if details is not None else None
+    res = match_cells(views, geom, (hr0, hr1, hc0, hc1), search, h_range, params, details=found)
+    if details is not None:
+        cand = found.get("candidates")
+        details["candidates"] = (
+            np.zeros((r1 - r0, c1 - c0), np.int32) if cand is None else cand[r0 - hr0 : r1 - hr0, c0 - hc0 : c1 - hc0]
+        )
     return res[:, r0 - hr0 : r1 - hr0, c0 - hc0 : c1 - hc0]
 
 
@@ -252,12 +264,26 @@ def coarse_blocks(coarse: da.Array, chunks, depth: int) -> da.Array:
     return _overlap(padded, {0: depth, 1: depth})
 
 
-def _despeckle_heights(block: np.ndarray, max_diff: float, min_size: int) -> np.ndarray:
+def despeckle_heights(block: np.ndarray, max_diff: float, min_size: int) -> np.ndarray:
+    """``block`` (``(2, rows, cols)`` heights and confidence) with the
+    height components of fewer than ``min_size`` cells set to NaN
+    (:func:`~tiledsm.match.sgm.remove_speckles`); confidence unchanged."""
     from tiledsm.match.sgm import remove_speckles
 
     out = block.copy()
     out[0] = remove_speckles(block[0], max_diff, min_size)
     return out
+
+
+def speckle_rule(geom: LevelGeometry, params: DSMParams) -> tuple[int, float]:
+    """``(min_size, max_diff)`` of the speckle filter at ``geom``'s level:
+    components of fewer than ``min_size`` cells are removed (none when it
+    is <= 1), neighbours differing by at most ``max_diff`` metres are
+    connected."""
+    # the same ground area at every level: a coarse cell is 4**level cells
+    # (a 16 m tower is 64 cells at level 2, a speckle at level 0)
+    size = int(params.match.speckle_size) // 4**geom.level
+    return size, params.match.speckle_max_diff(geom.grid.resolution, geom.step)
 
 
 def despeckle(matched: da.Array, geom: LevelGeometry, params: DSMParams) -> da.Array:
@@ -270,9 +296,7 @@ def despeckle(matched: da.Array, geom: LevelGeometry, params: DSMParams) -> da.A
     smaller than that lies entirely in a chunk's halo, and one that reaches
     the halo's edge has at least that many cells, so the result is exact in
     any chunking."""
-    # the same ground area at every level: a coarse cell is 4**level cells
-    # (a 16 m tower is 64 cells at level 2, a speckle at level 0)
-    size = int(params.match.speckle_size) // 4**geom.level
+    size, max_diff = speckle_rule(geom, params)
     if size <= 1:
         return matched
     chunks = matched.chunks
@@ -280,9 +304,9 @@ def despeckle(matched: da.Array, geom: LevelGeometry, params: DSMParams) -> da.A
     short = {ax: -1 for ax in (1, 2) if matched.shape[ax] <= size}
     depth = {0: 0, **{ax: (0 if ax in short else size) for ax in (1, 2)}}
     out = da.map_overlap(
-        _despeckle_heights, matched.rechunk(short) if short else matched, depth=depth, boundary="none", trim=True,
+        despeckle_heights, matched.rechunk(short) if short else matched, depth=depth, boundary="none", trim=True,
         dtype=np.float32,
-        max_diff=params.match.speckle_max_diff(geom.grid.resolution, geom.step), min_size=size,
+        max_diff=max_diff, min_size=size,
     )
     # map_overlap may have rechunked to fit a halo wider than a chunk
     return out.rechunk(chunks)
@@ -294,19 +318,26 @@ def level_array(views, geom: LevelGeometry, chunks, h_range, params: DSMParams, 
     ``params.halo()`` cells (searching around ``coarse``, the coarser
     level's heights, or the whole height range when ``None``) and
     returning the chunk; then :func:`despeckle`."""
-    from tiledsm.match.pyramid import search_halo
-
     halo = params.halo()
     coarsest = coarse is None
     if coarsest:
         blocks = da.zeros((1, *geom.grid.shape), chunks=((1,), *chunks), dtype=np.uint8)
     else:
-        blocks = coarse_blocks(coarse, chunks, search_halo(params.search) + halo // 2)
+        blocks = coarse_blocks(coarse, chunks, coarse_depth(params))
     matched = da.map_blocks(
-        _match_task, blocks, views, geom, chunks, halo, tuple(h_range), params, coarsest,
+        match_task, blocks, views, geom, chunks, halo, tuple(h_range), params, coarsest,
         chunks=((2,), *chunks), dtype=np.float32, name=f"match-L{geom.level}", new_axis=None if coarsest else 0,
     )
     return despeckle(matched, geom, params)
+
+
+def coarse_depth(params: DSMParams) -> int:
+    """Coarser cells a finer task reads around its chunk's half (see
+    :func:`coarse_blocks`): the search band's support plus half the
+    matching halo."""
+    from tiledsm.match.pyramid import search_halo
+
+    return search_halo(params.search) + params.halo() // 2
 
 
 def _grid_centre_lonlat(grid: GroundGrid) -> tuple[float, float]:

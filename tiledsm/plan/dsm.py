@@ -179,6 +179,7 @@ def plan_dsm(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names
         synthetic input).
     """
     from tiledsm.dsm import dsm_from_views, heights_above_geoid, open_views
+    from tiledsm.dsm.stages import LEVELS_DIR
 
     out, limits = plan.out, plan.limits
     inp, spec = recipe.input, recipe.grid
@@ -232,7 +233,7 @@ def plan_dsm(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names
 
     def build(grid, params):
         with _naming(images):
-            ds = dsm_from_views(views, grid, h_range, params)
+            ds = dsm_from_views(views, grid, h_range, params, stage_dir=out / LEVELS_DIR)
         if geoid:
             ds = heights_above_geoid(ds, geoid)
             report["vertical_datum"] = ds.attrs["vertical_datum"]
@@ -251,6 +252,12 @@ def plan_dsm(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names
         ds = build(grid, params)
         plan.recipe = recipe.model_copy(update={"grid": spec.model_copy(update={"chunk": chunk})})
     plan.reuse, plan.withdraw = dsm_reuse(out, grid, json.loads(ds.attrs["fingerprint"]), overwrite)
+    coarse = ", ".join(f"L{level}" for level in range(int(ds.attrs["levels"]) - 1, 0, -1))
+    if coarse:
+        plan.notes.append(
+            f"coarse levels ({coarse}) are stored in {out / LEVELS_DIR} while the run lasts "
+            "(finer tasks read their windows from there; kept for a resume, removed with the finished DSM)"
+        )
     plan.prepared = PreparedDSM(images, rpcs, reference, views, grid, h_range, ds, report)
     return plan
 

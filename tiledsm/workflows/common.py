@@ -104,16 +104,24 @@ def write_dsm_products(
     """Compute the lazy DSM into ``out/dsm.zarr``, then COG and PNG.
 
     The store is resumable: chunks finished by an interrupted run are kept
-    and only the others are computed (``overwrite`` discards them).
+    and only the others are computed (``overwrite`` discards them). So are
+    the levels a staged graph matches into ``out/dsm.levels``
+    (:mod:`tiledsm.dsm.stages`); that folder is removed once the DSM
+    store is finished.
 
-    Returns timings.
+    Returns timings (with ``levels``: each staged level's chunks and how
+    many were reused).
     """
+    from tiledsm.dsm.stages import LEVELS_DIR, stage_reports
     from tiledsm.io import write_cog, write_resumable
+    from tiledsm.io.atomic import remove_path
     from tiledsm.quicklook import quicklook as make_quicklook
 
     timings: dict = {}
     t0 = time.perf_counter()
     chunks: dict = {}
+    if overwrite:
+        remove_path(out / LEVELS_DIR)
     with compute_context(cluster) as client:
         write_resumable(
             ds,
@@ -122,10 +130,19 @@ def write_dsm_products(
             overwrite=overwrite,
             report=chunks,
         )
+    levels = stage_reports(out / LEVELS_DIR)
+    # scratch: the finished store no longer needs its levels
+    remove_path(out / LEVELS_DIR)
     timings["match_s"] = time.perf_counter() - t0
     timings["chunks"] = chunks
+    if levels:
+        timings["levels"] = levels
     if chunks.get("chunks_reused"):
         print(f"{out / 'dsm.zarr'}: reused {chunks['chunks_reused']} of {chunks['chunks_total']} chunks from an earlier run")
+    for name, rep in levels.items():
+        if rep["chunks_reused"]:
+            print(f"{out / LEVELS_DIR / name}.zarr: reused {rep['chunks_reused']} of {rep['chunks_total']} matched "
+                  "chunks from an earlier run")
     from tiledsm.io import open_product
 
     stored = open_product(out / "dsm.zarr")

@@ -358,6 +358,7 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
     from tiledsm.cluster import compute_context, shared_cluster
     from tiledsm.compare import CompareParams, compare_dsms
     from tiledsm.dsm import dsm_from_pair
+    from tiledsm.dsm.stages import LEVELS_DIR
     from tiledsm.io.grids import grid_like
     from tiledsm.io import open_product
     from tiledsm.workflows.common import write_dsm_products, write_json
@@ -403,9 +404,11 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
         timings["orient_s"] = time.perf_counter() - t0
 
     # ---- both DSMs lazily, the post one on the pre grid; refuse a post pair off the grid before computing
-    ds_pre, rep_pre = dsm_from_pair(*pre_in[0], rpcs=pre_in[1], grid=grid, params=params)
+    ds_pre, rep_pre = dsm_from_pair(*pre_in[0], rpcs=pre_in[1], grid=grid, params=params,
+                                    stage_dir=out / "pre" / LEVELS_DIR)
     grid = grid_like(ds_pre["height"], chunk=params.chunk)
-    ds_post, rep_post = dsm_from_pair(*post_in[0], rpcs=post_in[1], grid=grid, params=params)
+    ds_post, rep_post = dsm_from_pair(*post_in[0], rpcs=post_in[1], grid=grid, params=params,
+                                      stage_dir=out / "post" / LEVELS_DIR)
     _check_post_sees_grid(post_in[0], post_in[1], rep_post["height_range_m"], grid, pre_in[0])
 
     # ---- fault

@@ -242,11 +242,13 @@ def _dsm_params(recipe: SRDSMRecipe, grid: GroundGrid | None):
 def _make_dsm(views, grid, recipe, folder: Path, cluster: ClusterConfig, overwrite: bool) -> tuple[xr.DataArray, dict]:
     """DSM of ``views`` on ``grid`` into ``folder`` (products); returns the stored height and a report."""
     from tiledsm.dsm import dsm_from_pair
+    from tiledsm.dsm.stages import LEVELS_DIR
     from tiledsm.io import open_product
     from tiledsm.workflows.common import write_dsm_products
 
     t0 = time.perf_counter()
-    ds, report = dsm_from_pair(*[str(v) for v in views], grid=grid, params=_dsm_params(recipe, grid))
+    ds, report = dsm_from_pair(*[str(v) for v in views], grid=grid, params=_dsm_params(recipe, grid),
+                               stage_dir=folder / LEVELS_DIR)
     timings = write_dsm_products(ds, folder, cluster=cluster, cog=recipe.output.cog,
                                  quicklook=recipe.output.quicklook, overwrite=overwrite)
     timings["total_s"] = time.perf_counter() - t0

@@ -1,0 +1,137 @@
+"""Coarse pyramid levels written to stores between levels
+(:mod:`tiledsm.dsm.stages`): the same DSM as the plain graph, no coarse
+level held in memory for the finer tasks, finished blocks kept on resume,
+and a store of other inputs discarded.
+
+One 384 px synthetic scene (GSD 0.5 m, B/H 0.4), computed in process with
+the synchronous scheduler.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import dask
+import numpy as np
+import pytest
+import zarr
+
+from tiledsm.dsm import DSMParams, open_views, prepare_views
+from tiledsm.dsm.engine import dsm_from_views
+from tiledsm.dsm.levels import level_geometry
+from tiledsm.dsm.stages import stage_reports
+from tiledsm.io.grids import grid_like
+from tiledsm.synth import make_scene
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return make_scene(tmp_path_factory.mktemp("scene"), size=384, gsd=0.5, bh=0.4, seed=3, views=2)
+
+
+def _inputs(scene, levels: int, chunk: int):
+    params = DSMParams(levels=levels, chunk=chunk)
+    h_range, views, _ = prepare_views(open_views([str(v) for v in scene.views]), params)
+    return views, grid_like(scene.truth_dsm, chunk=chunk), h_range, params
+
+
+def _compute(ds) -> tuple[np.ndarray, np.ndarray]:
+    with dask.config.set(scheduler="synchronous"):
+        h, c = dask.compute(ds["height"].data, ds["confidence"].data)
+    return np.asarray(h), np.asarray(c)
+
+
+def _stored(path: Path) -> np.ndarray:
+    return np.asarray(zarr.open_array(store=str(path), path="height", mode="r")[...])
+
+
+@pytest.mark.parametrize(
+    "levels, chunk, chunk_counts",
+    # matching chunks per level: 384 cells in 90 (the halos' floor) -> 4 x 4,
+    # 192 -> 2 x 2; in 100 -> 3 x 3, 192 -> 2 x 2, 96 -> 1
+    [(2, 64, (16, 4)), (3, 100, (9, 4, 1))],
+    ids=["L2-chunk64", "L3-chunk100"],
+)
+def test_staged_levels_give_the_plain_graphs_dsm(scene, tmp_path, levels, chunk, chunk_counts):
+    """With ``stage_dir`` the DSM is bit-identical to the plain graph's
+    (chunks of 64, raised to the halos' floor of 90 cells, leave the
+    192-cell coarse level a merged last chunk of 102 cells, whose task
+    writes two store blocks); each coarse level is a finished store of raw heights, and no
+    finer task depends on a coarse task directly: only the level's barrier
+    links them."""
+    views, grid, h_range, params = _inputs(scene, levels, chunk)
+    plain = _compute(dsm_from_views(views, grid, h_range, params))
+    ds = dsm_from_views(views, grid, h_range, params, stage_dir=tmp_path / "levels")
+    graph = ds.__dask_graph__()
+    assert not (tmp_path / "levels").exists(), "building the graph must not write anything"
+    deps = graph.dependencies
+    for level in range(1, levels):
+        assert deps[f"match-L{level - 1}"] >= {f"stage-done-L{level}"}
+        assert not any(name.startswith(f"match-L{level}") for name in deps[f"match-L{level - 1}"])
+    staged = _compute(ds)
+    np.testing.assert_array_equal(staged[0], plain[0])
+    np.testing.assert_array_equal(staged[1], plain[1])
+    assert np.isfinite(plain[0]).mean() > 0.8
+    assert deps["despeckle-L0"] == {"stage-done-L0"}  # the speckle filter reads the finest level's store
+    stores = sorted(p.name for p in (tmp_path / "levels").iterdir())
+    assert stores == [f"L{level}.zarr" for level in range(levels)]
+    coarse = _stored(tmp_path / "levels" / "L1.zarr")
+    assert coarse.shape == (192, 192) and np.isfinite(coarse).mean() > 0.8
+    # the finest store holds the heights before the speckle filter: it removed some
+    raw = _stored(tmp_path / "levels" / "L0.zarr")
+    assert np.isfinite(raw).sum() > np.isfinite(staged[0]).sum()
+    reports = stage_reports(tmp_path / "levels")
+    assert {name: (r["chunks_total"], r["chunks_reused"]) for name, r in reports.items()} == {
+        f"L{level}": (n, 0) for level, n in zip(range(levels), chunk_counts)
+    }
+    # candidates per cell: the coarsest level sweeps the whole range, the
+    # same lattice heights in every cell, which cover `range / step` steps:
+    # from range / step + 1 to range / step + 3 (exclusive) of them, as the
+    # range's ends fall between lattice heights
+    coarsest = level_geometry(views, grid, levels - 1, h_range, params)
+    steps = (h_range[1] - h_range[0]) / coarsest.step
+    top = reports[f"L{levels - 1}"]
+    assert top["mean_candidates_per_cell"] == int(top["mean_candidates_per_cell"])
+    assert steps + 1 <= top["mean_candidates_per_cell"] < steps + 3, (top, steps)
+    assert top["cells_searched"] == coarsest.grid.shape[0] * coarsest.grid.shape[1]
+    # the finer levels: a band of +-refine_steps around the coarser surface
+    # (wider where the coarser surface varies, or has holes)
+    for level in range(levels - 1):
+        band = reports[f"L{level}"]["mean_candidates_per_cell"]
+        assert 2 * params.refine_steps + 1 <= band < 16, (level, band)  # measured 13.1-14.1
+
+
+def test_staged_level_keeps_its_finished_blocks_and_drops_a_stale_store(scene, tmp_path):
+    """Rerunning the graph recomputes only the blocks not marked done: a
+    block marked done keeps what is stored (here a planted value), a block
+    marked pending is matched again. A store holding another DSM's
+    fingerprint is discarded and rebuilt."""
+    views, grid, h_range, params = _inputs(scene, 2, 64)
+    stage = tmp_path / "levels"
+    _compute(dsm_from_views(views, grid, h_range, params, stage_dir=stage))
+    store = stage / "L1.zarr"
+    first = _stored(store)
+    heights = zarr.open_array(store=str(store), path="height", mode="r+")
+    done = zarr.open_array(store=str(store), path="_progress/done", mode="r+")
+    b = heights.chunks[0]  # the level's chunk side: 90 cells (the halos' floor), 192 = 90 + 90 + 12
+    assert b == 90 and done.shape == (3, 3) and np.asarray(done[...]).all()
+    heights[0:b, 0:b] = 1234.0  # block (0, 0): kept as finished
+    heights[b : 2 * b, b : 2 * b] = 1234.0  # block (1, 1): marked pending, so recomputed
+    done[1, 1] = 0
+    _compute(dsm_from_views(views, grid, h_range, params, stage_dir=stage))
+    again = _stored(store)
+    assert (again[0:b, 0:b] == 1234.0).all()
+    np.testing.assert_array_equal(again[b : 2 * b, b : 2 * b], first[b : 2 * b, b : 2 * b])
+    assert np.asarray(zarr.open_array(store=str(store), path="_progress/done", mode="r")[...]).all()
+    # L1's 2 x 2 matching chunks: the one writing block (1, 1) ran again; every L0 chunk was reused
+    reports = stage_reports(stage)
+    assert {name: (r["chunks_total"], r["chunks_reused"]) for name, r in reports.items()} == {"L1": (4, 3), "L0": (16, 16)}
+
+    # another height range: another fingerprint, the stale store is rebuilt
+    other = DSMParams(levels=2, chunk=64, height_range=(h_range[0] - 5.0, h_range[1] + 5.0))
+    _compute(dsm_from_views(views, grid, other.height_range, other, stage_dir=stage))
+    rebuilt = _stored(store)
+    assert not (rebuilt[0:b, 0:b] == 1234.0).any()
+    fp = json.loads(zarr.open_group(str(store), mode="r").attrs["stage_fingerprint"])
+    assert fp["level"] == 1 and fp["dsm"]["height_range"] == list(other.height_range)

@@ -1,0 +1,286 @@
+"""Pyramid levels kept on disk between stages, so that a worker's memory
+does not grow with the scene.
+
+In the plain graph (:func:`tiledsm.dsm.levels.level_array`) a finer level's
+tasks depend on the coarser level's results through an overlap
+(``coarse_blocks``), and the speckle filter on its level's matched chunks
+through another: dask keeps every result in a worker's memory until the
+last task that needs it has run, and on a large grid that frontier grows
+with the grid (an 8192² scene: ~150 MiB per worker on top of its largest
+task, ~290 MiB at times). Here each level is matched into a resumable zarr
+store (:class:`~tiledsm.io.ChunkStore`, one block per matching chunk), its
+tasks return only a token, one barrier task waits for all of them and
+finalizes the store, and every later task reads the window it needs from
+the store: a finer level its coarse heights, the finest level's speckle
+filter its chunk plus halo. The stores hold raw matched heights; the
+speckle filter of a coarse level runs on the window read (grown by the
+filter's own halo), which is exact for the same reason the filter is exact
+in any chunking (:func:`~tiledsm.dsm.levels.despeckle`), so the DSM is
+bit-identical to the plain graph's (tested).
+
+A store's blocks finished by an interrupted run are kept: the tasks of
+blocks already marked done return at once, and the store records how many
+chunks it reused and the mean number of candidate heights per searched
+cell (``stage_report``). Stores carry the DSM's fingerprint
+(``stage_fingerprint``); one computed from anything else is discarded when
+its level is set up.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+from functools import partial
+from pathlib import Path
+from typing import Sequence
+
+import dask.array as da
+import numpy as np
+from dask.highlevelgraph import HighLevelGraph
+
+from tiledsm.dsm.levels import LevelGeometry, match_task, coarse_depth, min_chunk, speckle_rule
+from tiledsm.dsm.params import DSMParams
+from tiledsm.dsm.views import View
+from tiledsm.io import ChunkStore
+
+__all__ = ["LEVELS_DIR", "StagedLevel", "stage_level", "finest_from_stage", "coarse_window", "stage_reports"]
+
+#: the folder of a run's coarse level stores, beside ``dsm.zarr`` (removed
+#: once the DSM store is finished)
+LEVELS_DIR = "dsm.levels"
+_FP_ATTR = "stage_fingerprint"
+_REPORT_ATTR = "stage_report"
+#: per-block candidate counts (sum over the searched cells, and the cells)
+_COUNTS = "_counts"
+_CANDIDATES = (("candidates", "int64"), ("cells", "int64"))
+
+
+@dataclass(frozen=True)
+class StagedLevel:
+    """A coarse level whose raw heights a graph writes into ``store``.
+
+    Attributes
+    ----------
+    store : ChunkStore
+        ``height`` (float32 ellipsoidal metres, NaN = none) of the level,
+        blocks of the level's chunk side.
+    geom : LevelGeometry
+        The level.
+    done_key : str
+        Key of the barrier task: it runs once every block is written (and
+        the store finalized).
+    graph : HighLevelGraph
+        The level's tasks up to ``done_key``.
+    """
+
+    store: ChunkStore
+    geom: LevelGeometry
+    done_key: str
+    graph: HighLevelGraph
+
+
+# ------------------------------------------------------------------ windows
+def _axis_window(chunks: tuple[int, ...], k: int, n_coarse: int, depth: int) -> tuple[int, int]:
+    """Coarse cells ``[start, stop)`` under finer chunk ``k`` of an axis
+    chunked ``chunks``, grown by ``depth`` (may leave ``[0, n_coarse)``):
+    coarse cell ``I`` covers finer cells ``2I, 2I+1``, the last chunk takes
+    the rest (as :func:`~tiledsm.dsm.levels.coarse_blocks`)."""
+    start = sum(n // 2 for n in chunks[:k])
+    stop = n_coarse if k == len(chunks) - 1 else start + chunks[k] // 2
+    return start - depth, stop + depth
+
+
+def _read(store: ChunkStore, r0: int, r1: int, c0: int, c1: int, variable: str = "height") -> np.ndarray:
+    import zarr
+
+    return np.asarray(zarr.open_array(store=str(store.live_path), path=variable, mode="r")[r0:r1, c0:c1])
+
+
+def coarse_window(
+    staged: StagedLevel, chunks: tuple[tuple[int, ...], tuple[int, ...]], i: int, j: int, params: DSMParams
+) -> np.ndarray:
+    """The coarse heights finer task ``(i, j)`` of ``chunks`` searches
+    around, read from ``staged``'s store: its chunk's coarse cells grown by
+    :func:`~tiledsm.dsm.levels.coarse_depth` (NaN beyond the grid), speckles
+    removed as the plain graph removes them.
+
+    The filter runs on the window grown by its own halo (the speckle size,
+    clipped to the grid): a component smaller than that lies inside it, so
+    every cell kept is the one the whole-level filter keeps.
+    """
+    from tiledsm.match.sgm import remove_speckles
+
+    depth = coarse_depth(params)
+    H, W = staged.store.shape
+    (a0, a1), (b0, b1) = (_axis_window(chunks[0], i, H, depth), _axis_window(chunks[1], j, W, depth))
+    size, max_diff = speckle_rule(staged.geom, params)
+    halo = max(size, 0)
+    r0, r1, c0, c1 = max(0, a0 - halo), min(H, a1 + halo), max(0, b0 - halo), min(W, b1 + halo)
+    h = _read(staged.store, r0, r1, c0, c1)
+    if size > 1:
+        h = remove_speckles(h, max_diff, size)
+    out = np.full((a1 - a0, b1 - b0), np.nan, np.float32)
+    y0, y1, x0, x1 = max(a0, 0), min(a1, H), max(b0, 0), min(b1, W)
+    out[y0 - a0 : y1 - a0, x0 - b0 : x1 - b0] = h[y0 - r0 : y1 - r0, x0 - c0 : x1 - c0]
+    return out
+
+
+# ------------------------------------------------------------------ tasks
+def _setup(store: ChunkStore, fingerprint: str, geom: LevelGeometry) -> bool:
+    """Create the level's store, or keep it (resume) when it holds the same
+    fingerprint; a store of anything else is discarded."""
+    import zarr
+
+    from tiledsm.io import create_store
+    from tiledsm.io.atomic import remove_path
+
+    for path in (Path(store.path), store.partial_path):
+        if path.exists():
+            try:
+                stored = zarr.open_group(str(path), mode="r").attrs.get(_FP_ATTR)
+            except Exception:  # unreadable: not ours to keep
+                stored = None
+            if stored != fingerprint:
+                remove_path(path)
+    template = replace(geom.grid, chunk=store.chunk[0])
+    create_store(store.path, template, {v: "float32" for v in store.variables}, attrs={_FP_ATTR: fingerprint})
+    # per block: the candidate heights summed over its searched cells, and their count
+    group = zarr.open_group(str(store.live_path), mode="a")
+    for name, dtype in _CANDIDATES:
+        if f"{_COUNTS}/{name}" not in group:
+            group.require_group(_COUNTS).create_array(name, shape=store.numblocks, chunks=(1, 1), dtype=dtype, fill_value=0)
+    return True
+
+
+def _blocks(store: ChunkStore, r0: int, r1: int, c0: int, c1: int) -> list[tuple[int, int]]:
+    cy, cx = store.chunk
+    return [(bi, bj) for bi in range(r0 // cy, -(-r1 // cy)) for bj in range(c0 // cx, -(-c1 // cx))]
+
+
+def _staged_task(_ready, _coarse_ready, i, j, *, staged_in, store, views, geom, chunks, halo, h_range, params) -> bool:
+    """Match chunk ``(i, j)`` of a level and write it into ``store``,
+    unless an earlier run did; return whether it was computed."""
+    from tiledsm.dsm.levels import chunk_window
+
+    r0, r1, _, _ = chunk_window(chunks[0], i, 0)
+    c0, c1, _, _ = chunk_window(chunks[1], j, 0)
+    blocks = _blocks(store, r0, r1, c0, c1)
+    done = store.done()
+    if all(done[b] for b in blocks):
+        return False
+    import zarr
+
+    coarse = None if staged_in is None else coarse_window(staged_in, chunks, i, j, params)
+    details: dict = {}
+    res = match_task(coarse, views, geom, chunks, halo, h_range, params, staged_in is None, block_id=(i, j), details=details)
+    where = str(store.live_path)
+    for bi, bj in blocks:
+        w0, w1, v0, v1 = store.block_window(bi, bj)
+        cand = details["candidates"][w0 - r0 : w1 - r0, v0 - c0 : v1 - c0]
+        # before the block is marked done (write_block), so a done block has its counts
+        zarr.open_array(store=where, path=f"{_COUNTS}/candidates", mode="r+")[bi, bj] = int(cand.sum())
+        zarr.open_array(store=where, path=f"{_COUNTS}/cells", mode="r+")[bi, bj] = int((cand > 0).sum())
+        part = res[:, w0 - r0 : w1 - r0, v0 - c0 : v1 - c0]
+        store.write_block(bi, bj, dict(zip(store.variables, part)))
+    return True
+
+
+def _finish(store: ChunkStore, *computed: bool) -> bool:
+    """Record how many chunks were reused and finalize the store."""
+    import zarr
+
+    where = str(store.live_path)
+    n = int(np.asarray(zarr.open_array(store=where, path=f"{_COUNTS}/candidates", mode="r")[...]).sum())
+    cells = int(np.asarray(zarr.open_array(store=where, path=f"{_COUNTS}/cells", mode="r")[...]).sum())
+    zarr.open_group(where, mode="a").attrs[_REPORT_ATTR] = {
+        "chunks_total": len(computed), "chunks_reused": int(len(computed) - sum(computed)),
+        "cells_searched": cells, "mean_candidates_per_cell": n / cells if cells else None,
+    }
+    store.finalize()
+    return True
+
+
+def _despeckled_task(_ready, i, j, *, staged, chunks, max_diff, size) -> np.ndarray:
+    """Heights and confidence of grid chunk ``(i, j)`` of the finest level,
+    read with the speckle filter's halo from its store and filtered."""
+    from tiledsm.dsm.levels import despeckle_heights, chunk_window
+
+    r0, r1, hr0, hr1 = chunk_window(chunks[0], i, size)
+    c0, c1, hc0, hc1 = chunk_window(chunks[1], j, size)
+    block = np.stack([_read(staged.store, hr0, hr1, hc0, hc1, v) for v in staged.store.variables])
+    if size > 1:
+        block = despeckle_heights(block, max_diff, size)
+    return block[:, r0 - hr0 : r1 - hr0, c0 - hc0 : c1 - hc0]
+
+
+# ------------------------------------------------------------------ graphs
+def stage_level(
+    views: Sequence[View],
+    geom: LevelGeometry,
+    chunks: tuple[tuple[int, ...], tuple[int, ...]],
+    h_range: tuple[float, float],
+    params: DSMParams,
+    coarser: StagedLevel | None,
+    stage_dir: Path,
+    fingerprint: str,
+) -> StagedLevel:
+    """The graph that matches level ``geom`` in ``chunks`` into
+    ``stage_dir/L<level>.zarr`` (searching around ``coarser``'s stored
+    heights, or the whole height range at the coarsest level): heights at
+    a coarse level, heights and confidence at the finest."""
+    # the side of the level's chunks (:func:`~tiledsm.dsm.levels.level_layout`):
+    # a merged last chunk covers two store blocks
+    side = max(int(geom.grid.chunk), min_chunk(params))
+    variables = ("height", "confidence") if geom.level == 0 else ("height",)
+    store = ChunkStore(str(Path(stage_dir) / f"L{geom.level}.zarr"), variables, tuple(geom.grid.shape), (side, side))
+    fp = json.dumps({"dsm": json.loads(fingerprint), "level": geom.level}, sort_keys=True)
+    # fixed names, as the plain graph's ``match-L<level>`` (one DSM per graph)
+    setup_key, name, done_key = f"stage-setup-L{geom.level}", f"match-L{geom.level}", f"stage-done-L{geom.level}"
+    fn = partial(
+        _staged_task, staged_in=coarser, store=store, views=list(views), geom=geom, chunks=chunks,
+        halo=params.halo(), h_range=tuple(h_range), params=params,
+    )
+    prev = None if coarser is None else coarser.done_key
+    keys = [(name, i, j) for i in range(len(chunks[0])) for j in range(len(chunks[1]))]
+    layers = {
+        setup_key: {setup_key: (_setup, store, fp, geom)},
+        name: {k: (fn, setup_key, prev, k[1], k[2]) for k in keys},
+        done_key: {done_key: (_finish, store, *keys)},
+    }
+    deps = {setup_key: set(), name: {setup_key} | ({prev} if prev else set()), done_key: {name}}
+    graph = HighLevelGraph(layers, deps)
+    if coarser is not None:
+        graph = HighLevelGraph.merge(coarser.graph, graph)
+    return StagedLevel(store, geom, done_key, graph)
+
+
+def finest_from_stage(staged: StagedLevel, chunks: tuple[tuple[int, ...], tuple[int, ...]], params: DSMParams) -> da.Array:
+    """Lazy ``(2, H, W)`` heights and confidence of the finest level, chunked
+    ``chunks`` (the grid's), from its store once complete: each task reads
+    its chunk plus the speckle filter's halo and filters it (as
+    :func:`~tiledsm.dsm.levels.despeckle`)."""
+    size, max_diff = speckle_rule(staged.geom, params)
+    name = f"despeckle-L{staged.geom.level}"
+    fn = partial(_despeckled_task, staged=staged, chunks=chunks, max_diff=max_diff, size=max(size, 0))
+    layer = {(name, 0, i, j): (fn, staged.done_key, i, j) for i in range(len(chunks[0])) for j in range(len(chunks[1]))}
+    graph = HighLevelGraph.merge(staged.graph, HighLevelGraph({name: layer}, {name: {staged.done_key}}))
+    return da.Array(graph, name, ((2,), *chunks), dtype=np.float32, meta=np.empty((0, 0, 0), np.float32))
+
+
+def stage_reports(stage_dir: Path) -> dict[str, dict]:
+    """``{"L<level>": {"chunks_total", "chunks_reused", "cells_searched",
+    "mean_candidates_per_cell"}}`` of the finished level stores in
+    ``stage_dir``: what the last run computed, what it took from an earlier
+    one, and how many candidate heights a searched cell had on average
+    (the cost of matching follows it)."""
+    import zarr
+
+    out = {}
+    for path in sorted(Path(stage_dir).glob("L*.zarr")):
+        try:
+            report = zarr.open_group(str(path), mode="r").attrs.get(_REPORT_ATTR)
+        except Exception:  # not a finished store of ours
+            continue
+        if report:
+            out[path.stem] = dict(report)
+    return out
