@@ -41,7 +41,7 @@ def _compute(arr):
 DEG = {"srmd": {"blur_sigma": 1.3, "noise": 20.0}}
 
 
-@pytest.mark.parametrize("name", ["bicubic", "srcnn", "vdsr", "srmd"])
+@pytest.mark.parametrize("name", ["bicubic", "srcnn", "vdsr", "srmd", "srmd_official"])
 def test_tiled_equals_whole(name):
     model = _random_model(name)
     img = _image()

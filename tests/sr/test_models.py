@@ -20,7 +20,7 @@ def test_registry_refuses_duplicates():
         reg.register("a", VDSR)
     with pytest.raises(SRError, match="already registered"):
         MODELS.register("srcnn", SRCNN)
-    assert MODELS.names() == ["bicubic", "srcnn", "vdsr", "srmd"]
+    assert MODELS.names() == ["bicubic", "srcnn", "vdsr", "srmd", "srmd_official"]
 
 
 def test_registry_unknown_and_bad_params():
@@ -48,7 +48,7 @@ def test_architectures_match_papers():
     assert all(l.padding == (0, 0) for l in c + v + s)
 
 
-@pytest.mark.parametrize("name,scale", [("bicubic", 2), ("srcnn", 3), ("vdsr", 2), ("srmd", 4)])
+@pytest.mark.parametrize("name,scale", [("bicubic", 2), ("srcnn", 3), ("vdsr", 2), ("srmd", 4), ("srmd_official", 4)])
 def test_shapes(name, scale):
     m = build(name, scale=scale).eval()
     x = torch.rand(2, 1, 13, 17)
@@ -65,6 +65,7 @@ def test_halos_from_receptive_field():
     assert build("vdsr", scale=2).halo == 2 + 10  # 20 / 2
     assert build("vdsr", scale=3).halo == 2 + 7  # ceil(20 / 3)
     assert build("srmd", scale=2).halo == 12  # 12 layers on the LR grid
+    assert build("srmd_official", scale=4).halo == 12  # the same on zero padding
 
 
 @pytest.mark.parametrize("scale", [2, 3, 4])

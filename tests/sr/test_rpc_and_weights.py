@@ -33,11 +33,18 @@ def test_output_rpc_is_scaled_rpc(shared_data):
 def test_shipped_weights_are_small_and_load():
     shipped = available_weights()
     assert ("srcnn", 2) in shipped
+    assert ("srmd_official", 2) in shipped and ("srmd_official", 4) in shipped
     for name, scale in shipped:
-        assert weights_path(name, scale).stat().st_size < 2e6
         assert weights_path(name, scale).with_suffix(".md").exists()
         model = load_pretrained(name, scale)
-        assert model.card["steps"] > 0 and model.card["held_out"] == list(HELD_OUT)
+        if name == "srmd_official":
+            # the published 12 x 128 network, float16 weights: converted, not trained here
+            assert weights_path(name, scale).stat().st_size < 3.1e6
+            assert set(model.card["files"]) == {f"srmdnf_x{scale}.param", f"srmdnf_x{scale}.bin"}
+            assert (weights_path(name, scale).parent / "LICENSE-srmd_official.txt").exists()
+        else:
+            assert weights_path(name, scale).stat().st_size < 2e6
+            assert model.card["steps"] > 0 and model.card["held_out"] == list(HELD_OUT)
 
 
 def test_trained_srcnn_beats_bicubic_on_held_out_image():

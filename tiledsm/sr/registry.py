@@ -16,7 +16,7 @@ from typing import Callable
 import torch
 
 from tiledsm.errors import TiledsmError
-from tiledsm.sr.models import SRCNN, SRMD, VDSR, Bicubic, SRModel
+from tiledsm.sr.models import SRCNN, SRMD, VDSR, Bicubic, OfficialSRMD, SRModel
 
 __all__ = ["SRError", "Registry", "MODELS", "build", "load_pretrained", "load_weights", "available_weights", "WEIGHTS_DIR"]
 
@@ -66,6 +66,8 @@ MODELS.register("bicubic", Bicubic)
 MODELS.register("srcnn", SRCNN)
 MODELS.register("vdsr", VDSR)
 MODELS.register("srmd", SRMD)
+#: the authors' published weights, converted (tiledsm.sr.ncnn)
+MODELS.register("srmd_official", OfficialSRMD)
 
 #: models that need no weights
 WEIGHTLESS = frozenset({"bicubic"})

@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["ReflectConv2d", "bicubic_upsample", "conv_radius", "BICUBIC_RADIUS"]
+__all__ = ["ReflectConv2d", "ZeroPadConv2d", "bicubic_upsample", "conv_radius", "BICUBIC_RADIUS"]
 
 #: support radius (input pixels) of the bicubic kernel on either side
 BICUBIC_RADIUS = 2
@@ -50,6 +50,19 @@ class ReflectConv2d(nn.Conv2d):
         return super().forward(x)
 
 
+class ZeroPadConv2d(ReflectConv2d):
+    """:class:`ReflectConv2d` padded with zeros instead: the padding of
+    networks trained that way (the published SRMD weights, see
+    :mod:`tiledsm.sr.ncnn`), so that they give the outputs they were
+    trained to give. Inside a tiled image the halo hides the difference;
+    only the image's own border sees it."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:  # noqa: D102
+        if self.pad:
+            x = F.pad(x, (self.pad,) * 4, mode="constant", value=0.0)
+        return nn.Conv2d.forward(self, x)
+
+
 def bicubic_upsample(x: torch.Tensor, scale: int) -> torch.Tensor:
     """Bicubic upsampling by an integer factor (Keys kernel, ``a = -0.75``).
 
@@ -66,7 +79,8 @@ def bicubic_upsample(x: torch.Tensor, scale: int) -> torch.Tensor:
 
 
 def conv_radius(module: nn.Module) -> int:
-    """Sum of the radii of all :class:`ReflectConv2d` layers in ``module``.
+    """Sum of the radii of all :class:`ReflectConv2d` layers (and
+    subclasses) in ``module``.
 
     This is the receptive-field radius (in the layers' own pixel grid) of a
     plain chain of convolutions; it is also the depth up to which the
