@@ -63,7 +63,9 @@ def dsm_from_views(
         if stage_dir is not None:
             from tiledsm.dsm.stages import stage_level
 
-            staged = stage_level(views, geom, chunks, h_range, params, staged, Path(stage_dir), json.dumps(fp, sort_keys=True))
+            # absolute: the workers of a remote cluster need not share the client's working directory
+            staged = stage_level(views, geom, chunks, h_range, params, staged, Path(stage_dir).absolute(),
+                                 json.dumps(fp, sort_keys=True))
         else:
             arr = level_array(views, geom, chunks, h_range, params, None if arr is None else arr[0])
     if staged is not None:

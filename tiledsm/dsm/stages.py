@@ -43,7 +43,7 @@ from tiledsm.dsm.params import DSMParams
 from tiledsm.dsm.views import View
 from tiledsm.io import ChunkStore
 
-__all__ = ["LEVELS_DIR", "StagedLevel", "stage_level", "finest_from_stage", "coarse_window", "stage_reports"]
+__all__ = ["LEVELS_DIR", "LevelStore", "StagedLevel", "stage_level", "finest_from_stage", "coarse_window", "stage_reports"]
 
 #: the folder of a run's coarse level stores, beside ``dsm.zarr`` (removed
 #: once the DSM store is finished)
@@ -56,25 +56,39 @@ _CANDIDATES = (("candidates", "int64"), ("cells", "int64"))
 
 
 @dataclass(frozen=True)
-class StagedLevel:
-    """A coarse level whose raw heights a graph writes into ``store``.
+class LevelStore:
+    """Where a level's matched heights are: what its readers' tasks carry.
 
     Attributes
     ----------
     store : ChunkStore
-        ``height`` (float32 ellipsoidal metres, NaN = none) of the level,
-        blocks of the level's chunk side.
+        ``height`` (float32 ellipsoidal metres, NaN = none; at the finest
+        level also ``confidence``), blocks of the level's chunk side.
     geom : LevelGeometry
         The level.
-    done_key : str
-        Key of the barrier task: it runs once every block is written (and
-        the store finalized).
-    graph : HighLevelGraph
-        The level's tasks up to ``done_key``.
     """
 
     store: ChunkStore
     geom: LevelGeometry
+
+
+@dataclass(frozen=True)
+class StagedLevel:
+    """A level whose matched heights a graph writes into a store.
+
+    Attributes
+    ----------
+    level : LevelStore
+        The store and the level.
+    done_key : str
+        Key of the barrier task: it runs once every block is written (and
+        the store finalized).
+    graph : HighLevelGraph
+        The tasks up to ``done_key`` (coarser levels included); never
+        given to a task, which carries ``level`` only.
+    """
+
+    level: LevelStore
     done_key: str
     graph: HighLevelGraph
 
@@ -97,7 +111,7 @@ def _read(store: ChunkStore, r0: int, r1: int, c0: int, c1: int, variable: str =
 
 
 def coarse_window(
-    staged: StagedLevel, chunks: tuple[tuple[int, ...], tuple[int, ...]], i: int, j: int, params: DSMParams
+    staged: LevelStore, chunks: tuple[tuple[int, ...], tuple[int, ...]], i: int, j: int, params: DSMParams
 ) -> np.ndarray:
     """The coarse heights finer task ``(i, j)`` of ``chunks`` searches
     around, read from ``staged``'s store: its chunk's coarse cells grown by
@@ -237,8 +251,8 @@ def stage_level(
     # fixed names, as the plain graph's ``match-L<level>`` (one DSM per graph)
     setup_key, name, done_key = f"stage-setup-L{geom.level}", f"match-L{geom.level}", f"stage-done-L{geom.level}"
     fn = partial(
-        _staged_task, staged_in=coarser, store=store, views=list(views), geom=geom, chunks=chunks,
-        halo=params.halo(), h_range=tuple(h_range), params=params,
+        _staged_task, staged_in=None if coarser is None else coarser.level, store=store, views=list(views), geom=geom,
+        chunks=chunks, halo=params.halo(), h_range=tuple(h_range), params=params,
     )
     prev = None if coarser is None else coarser.done_key
     keys = [(name, i, j) for i in range(len(chunks[0])) for j in range(len(chunks[1]))]
@@ -251,7 +265,7 @@ def stage_level(
     graph = HighLevelGraph(layers, deps)
     if coarser is not None:
         graph = HighLevelGraph.merge(coarser.graph, graph)
-    return StagedLevel(store, geom, done_key, graph)
+    return StagedLevel(LevelStore(store, geom), done_key, graph)
 
 
 def finest_from_stage(staged: StagedLevel, chunks: tuple[tuple[int, ...], tuple[int, ...]], params: DSMParams) -> da.Array:
@@ -259,9 +273,9 @@ def finest_from_stage(staged: StagedLevel, chunks: tuple[tuple[int, ...], tuple[
     ``chunks`` (the grid's), from its store once complete: each task reads
     its chunk plus the speckle filter's halo and filters it (as
     :func:`~tiledsm.dsm.levels.despeckle`)."""
-    size, max_diff = speckle_rule(staged.geom, params)
-    name = f"despeckle-L{staged.geom.level}"
-    fn = partial(_despeckled_task, staged=staged, chunks=chunks, max_diff=max_diff, size=max(size, 0))
+    size, max_diff = speckle_rule(staged.level.geom, params)
+    name = f"despeckle-L{staged.level.geom.level}"
+    fn = partial(_despeckled_task, staged=staged.level, chunks=chunks, max_diff=max_diff, size=max(size, 0))
     layer = {(name, 0, i, j): (fn, staged.done_key, i, j) for i in range(len(chunks[0])) for j in range(len(chunks[1]))}
     graph = HighLevelGraph.merge(staged.graph, HighLevelGraph({name: layer}, {name: {staged.done_key}}))
     return da.Array(graph, name, ((2,), *chunks), dtype=np.float32, meta=np.empty((0, 0, 0), np.float32))

@@ -22,7 +22,8 @@ Steps (``pipeline: sr_dsm``), all under the run folder:
 
    - ``dsm_upscale/``: the LR DSM interpolated bilinearly onto ``G``
      (:func:`upsample_dsm`);
-   - ``bicubic/``, ``srcnn/``, ``vdsr/``, ``srmd/``: each LR image
+   - ``bicubic/``, ``srcnn/``, ``vdsr/``, ``srmd/``, ``srmd_official/``
+     (the authors' published weights, :mod:`tiledsm.sr.ncnn`): each LR image
      super-resolved ``sr.scale`` times (:func:`tiledsm.sr.super_resolve`,
      shipped weights, RPC scaled), written as ``sr_view_{i}.tif``
      (float32 DN with RPC tags), then its DSM on ``G``.
@@ -97,7 +98,7 @@ __all__ = [
 #: the method that super-resolves the DSM instead of the images
 UPSCALE = "dsm_upscale"
 #: every method, in the order of the paper's tables
-METHODS = (UPSCALE, "bicubic", "srcnn", "vdsr", "srmd")
+METHODS = (UPSCALE, "bicubic", "srcnn", "vdsr", "srmd", "srmd_official")
 
 
 # ------------------------------------------------------------------ schema

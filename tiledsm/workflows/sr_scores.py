@@ -27,6 +27,7 @@ class SRDSMError(TiledsmError):
 
 #: how the report names each method
 LABELS = {"dsm_upscale": "DSM upscale", "bicubic": "Bicubic", "srcnn": "SRCNN", "vdsr": "VDSR", "srmd": "SRMD",
+          "srmd_official": "SRMD (published weights)",
           "hr": "HR pair", "lr": "LR pair"}
 
 
