@@ -23,7 +23,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("output", help="output .tif (GeoTIFF + RPC tags) or .zarr")
     p.add_argument("--model", default="srmd_official", choices=["bicubic", "srcnn", "vdsr", "srmd", "srmd_official"],
                    help="SR network (default: the published SRMD weights, the best on held-out images; "
-                        "srcnn is about 20x faster)")
+                        "srcnn is about 10x faster)")
     p.add_argument("--scale", type=int, default=2)
     p.add_argument("--weights", default=None, help="weights file (default: the shipped weights of --model at --scale)")
     p.add_argument("--blur-sigma", type=float, default=None, help="SRMD: Gaussian blur sigma of the LR image, HR pixels")
