@@ -20,7 +20,7 @@ import xarray as xr
 
 from tiledsm.io import atomic_path
 
-__all__ = ["hillshade", "quicklook", "KINDS"]
+__all__ = ["hillshade", "quicklook", "KINDS", "NAN_COLOUR"]
 
 #: supported quick-look kinds
 KINDS = ("height", "difference", "image")

@@ -275,7 +275,7 @@ def format_errors(path: Path, exc: ValidationError) -> str:
 
 
 _PATH_KEYS = {"images", "rpcs", "reference", "like", "geoid", "stable_mask", "pre", "post", "dem", "truth_dh", "truth_mask",
-              "gcps", "check_points", "cameras", "dsm", "truth"}
+              "gcps", "check_points", "cameras", "dsm", "truth", "data_dirs"}
 
 
 def _resolve_paths(data: Any, base: Path, key: str | None = None) -> Any:

@@ -118,6 +118,6 @@ def test_card_lists_cache_images_with_checksums(tmp_path):
     img = (synthetic_image(3, 64) * 255).astype(np.uint8)
     cv2.imwrite(str(folder / "t.png"), img)
     card = train(TrainConfig(model="srcnn", out=str(tmp_path / "m.pt"), steps=1, batch=1, patch=16, use_skimage=False,
-                             synthetic=0, cache_dirs=(str(folder),), eval_crop=32), log=lambda m: None)
+                             synthetic=0, data_dirs=(str(folder),), eval_crop=32), log=lambda m: None)
     digest = hashlib.sha256((folder / "t.png").read_bytes()).hexdigest()[:16]
     assert card["data"] == [f"tiles/t.png sha256:{digest}"]

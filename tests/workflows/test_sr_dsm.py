@@ -18,6 +18,7 @@ from tiledsm.geometry.grid import GroundGrid
 from tiledsm.io.grids import grid_like
 from tiledsm.pipelines import load_recipe, run_recipe
 from tiledsm.workflows.sr_dsm import METHODS, UPSCALE, lr_grid, upsample_dsm
+from tiledsm.workflows.sr_scores import REGIONS
 
 SYNC = ClusterConfig(scheduler="synchronous", progress=False)
 SR_MODELS = [m for m in METHODS if m != UPSCALE]
@@ -69,7 +70,15 @@ def test_every_method_has_its_rows_and_files(run):
     for name in METHODS:
         for key in ("vs_hr", "vs_truth_visible"):
             s = metrics["methods"][name][key]
-            assert np.isfinite([s["rmse"], s["mre"], s["nmad"], s["completeness"]]).all()
+            assert np.isfinite([s["rmse"], s["mre"], s["nmad"], s["completeness"], s["blunder_rate"]]).all()
+    # the four-region breakdown: every region holds cells, each scored for the HR pair and every method
+    regions = metrics["regions"]
+    assert list(regions["tables"]) == list(REGIONS) and regions["dsms"] == ["hr", *METHODS]
+    for region, table in regions["tables"].items():
+        assert table["common"]["count"] > 100, region
+        assert set(table["scores"]) == {"hr", *METHODS}
+    assert "**Table 4.** Four-region breakdown" in report
+    assert (out / "blunders.png").stat().st_size > 10_000
 
 
 def test_tables_are_scored_on_common_cells(run):

@@ -8,8 +8,15 @@ import numpy as np
 import pytest
 
 from tiledsm.workflows.sr_dsm import _score_tables
+from tiledsm.workflows.sr_figures import blunder_map
 from tiledsm.workflows.sr_scores import (
+    BLUNDER_K,
+    REGIONS,
+    RegionRule,
+    blunder_cells,
     common_valid,
+    compare_by_region,
+    regions_from_truth,
     compare_on_common,
     markdown_report,
     own_completeness,
@@ -140,3 +147,117 @@ def test_report_without_common_block_still_renders():
     metrics = _metrics(truth, {"bicubic": a}, {})
     del metrics["common"]
     assert "Scored on" not in markdown_report(metrics)
+
+
+def _blunder_case():
+    """100 cells: 48 errors of +0.1 m, 48 of -0.1 m, 2 of +10 m, 2 of -10 m.
+    Median 0, median |error| 0.1 m, so NMAD = 0.14826 m and the blunders
+    (|error - median| > 3 NMAD = 0.445 m) are exactly the four 10 m cells."""
+    err = np.array([0.1] * 48 + [-0.1] * 48 + [10.0] * 2 + [-10.0] * 2).reshape(10, 10)
+    ref = 200.0 + np.arange(100.0).reshape(10, 10)
+    return ref + err, ref, np.abs(err) > 1.0
+
+
+def test_blunders_are_errors_beyond_three_nmad():
+    h, ref, truth = _blunder_case()
+    blunders, threshold = blunder_cells(h, ref, np.ones(h.shape, bool))
+    assert threshold == pytest.approx(BLUNDER_K * 1.4826 * 0.1, rel=1e-9)
+    np.testing.assert_array_equal(blunders, truth)
+    s = scores_on(h, ref, np.ones(h.shape, bool))
+    assert s["blunder_rate"] == pytest.approx(0.04) and s["blunder_threshold"] == pytest.approx(threshold)
+    # only scored cells count: masking two blunders out leaves 2 of 98
+    cells = np.ones(h.shape, bool)
+    cells[9, 8:] = False
+    assert scores_on(h, ref, cells)["blunder_rate"] == pytest.approx(2 / 98)
+    h2 = h.copy()
+    h2[9, 9] = np.nan  # a hole is not a blunder
+    assert not blunder_cells(h2, ref, np.ones(h.shape, bool))[0][9, 9]
+    empty, t = blunder_cells(h, ref, np.zeros(h.shape, bool))
+    assert not empty.any() and np.isnan(t)
+    # a bias is not a blunder: the threshold is around the median error
+    np.testing.assert_array_equal(blunder_cells(h + 3.0, ref, np.ones(h.shape, bool))[0], truth)
+
+
+def _regions_case():
+    """40 x 40 cells of 1 m: the west half a plane rising 1 m per metre to
+    the east (45 deg), the east half flat, one 6 x 6 building on the flat
+    half, a 4 x 4 tree, and a 3-cell-wide band hidden from a view."""
+    z = np.zeros((40, 40))
+    z[:, :20] = np.arange(20.0)[None, :]
+    z[:, 20:] = 19.0
+    label = np.zeros((40, 40), np.uint8)
+    label[5:11, 28:34] = 1
+    label[30:34, 30:34] = 2
+    visible = np.ones((40, 40), bool)
+    visible[20:23, :] = False
+    return z, label, visible
+
+
+def test_four_regions_from_truth():
+    z, label, visible = _regions_case()
+    regions = regions_from_truth(z, label, visible, 1.0, RegionRule(flat_max_deg=10, steep_min_deg=25))
+    assert list(regions) == list(REGIONS)
+    stack = np.stack(list(regions.values())).astype(int)
+    assert stack.sum(0).max() == 1  # disjoint
+    assert regions["buildings"].sum() == 36 and regions["buildings"][5:11, 28:34].all()
+    assert regions["mismatch_prone"][30:34, 30:34].all() and regions["mismatch_prone"][20:23].all()
+    assert regions["mismatch_prone"].sum() == 16 + 3 * 40
+    # the 45 deg plane is steep up to the ridge (central difference there: 0.5 m/m, 26.6 deg), the flat half is not
+    assert regions["steep"][:20, :20].all() and regions["steep"][:, 20:].sum() == 0
+    # flat: the east half minus the building, the tree, the hidden band, and the column next to the ridge
+    assert regions["flat"][0, 21:].all() and not regions["flat"][:, :20].any()
+    with pytest.raises(ValueError, match="shapes differ"):
+        regions_from_truth(z, label[:-1], visible, 1.0)
+
+
+def test_region_tables_score_each_region_on_its_common_cells():
+    z, label, visible = _regions_case()
+    regions = regions_from_truth(z, label, visible, 1.0)
+    rng = np.random.default_rng(0)
+    good = z + rng.normal(0, 0.1, z.shape)
+    bad_on_roofs = good.copy()
+    bad_on_roofs[regions["buildings"]] += 5.0
+    holes = good.copy()
+    holes[:2, :] = np.nan  # removes 2 rows of the steep and flat regions from every table
+    tables = compare_by_region({"good": good, "roofs": bad_on_roofs, "holes": holes}, z, regions)
+    assert list(tables) == list(REGIONS)
+    b = tables["buildings"]["scores"]
+    assert b["roofs"]["median"] == pytest.approx(5.0, abs=0.1) and abs(b["good"]["median"]) < 0.1
+    assert tables["steep"]["common"]["count"] == regions["steep"].sum() - 2 * 20
+    for region in ("steep", "flat", "mismatch_prone"):
+        assert tables[region]["scores"]["roofs"]["rmse"] == pytest.approx(tables[region]["scores"]["good"]["rmse"])
+
+
+def test_report_has_region_table_and_blunder_columns():
+    ref, a, b = _case()
+    scores, common = _score_tables(ref, {"srcnn": a, "vdsr": b}, {"vs_truth_visible": (ref, None)})
+    z, label, visible = _regions_case()
+    regions = regions_from_truth(z, label, visible, 1.0)
+    metrics = {
+        "name": "t", "input": "x", "sr": {"scale": 2, "degrade": "bicubic", "bit_depth": 12, "border": 2},
+        "grid": {"resolution": 0.5, "width": 4, "height": 5},
+        "hr": scores["hr"], "methods": {"srcnn": {**scores["srcnn"]}, "vdsr": {**scores["vdsr"]}},
+        "common": common, "timings": {"hr": 1.0},
+        "regions": {"rule": "flat < 10 deg", "dsms": ["srcnn"], "tables": compare_by_region({"srcnn": z + 0.2}, z, regions)},
+    }
+    report = markdown_report(metrics)
+    assert "| Method | RMSE (m) | MRE (%) | NMAD (m) | Blunders (%) | Completeness (%) |" in report
+    assert "**Table 4.** Four-region breakdown" in report
+    assert f"| Buildings (roofs) | {regions['buildings'].sum()} | 0.200 / 0.000 / 0.0 |" in report
+
+
+def test_blunder_map_marks_the_blunders_red(tmp_path):
+    import matplotlib.image as mpimg
+
+    h, ref, truth = _blunder_case()
+    h = np.kron(h, np.ones((8, 8)))  # 80 x 80 cells: blunder blocks large enough to see
+    ref = np.kron(ref, np.ones((8, 8)))
+    clean = ref + np.random.default_rng(0).normal(0, 0.1, ref.shape)  # normal errors: 0.27 % beyond 3 NMAD
+    path = blunder_map({"srcnn": h, "clean": clean},
+                       ref, np.ones(ref.shape, bool), 1.0, tmp_path / "b.png", "test")
+    img = mpimg.imread(path)[..., :3]
+    red = (img[..., 0] > 0.8) & (img[..., 1] < 0.2) & (img[..., 2] < 0.2)
+    half = img.shape[1] // 2
+    assert red[:, :half].sum() > 4 * 8 * 8 * 0.5  # the four blunder blocks in the first panel
+    assert red[:, half:].sum() < red[:, :half].sum() / 4  # 17 of 6400 cells, plus the legend swatch
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b.png"]

@@ -38,16 +38,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     t = subparsers.add_parser(
         "train-sr",
         help="train an SR network (weights + card) on offline images",
-        description="Train on random patches of scikit-image's bundled images, images in --cache-dir "
-        "folders and synthetic renders; writes the weights file and a markdown card with the held-out PSNR.",
+        description="Train on random patches of scikit-image's bundled images, images in the recipe's "
+        "data_dirs (or --data-dir) and synthetic renders; writes the weights file and a markdown card with the held-out PSNR.",
     )
     t.add_argument("--recipe", default=None, help="YAML with TrainConfig fields (recipes/train_sr.yaml); flags override it")
-    t.add_argument("--model", default=None, choices=["srcnn", "vdsr", "srmd"])
+    t.add_argument("--model", default=None, choices=["srcnn", "srcnn_residual", "vdsr", "srmd"])
     t.add_argument("--scale", type=int, default=None)
     t.add_argument("--out", default=None, help="weights file (.pt); card written beside it (.md)")
     t.add_argument("--steps", type=int, default=None)
     t.add_argument("--max-seconds", type=float, default=None)
-    t.add_argument("--cache-dir", action="append", default=None, help="extra image folder (repeatable)")
+    t.add_argument("--data-dir", action="append", default=None, help="image folder (repeatable; replaces the recipe's data_dirs)")
     t.add_argument("--threads", type=int, default=None, help="torch threads")
     t.add_argument("--ship", action="store_true",
                    help="allow --out inside the package's shipped weights folder (replace the shipped weights)")
@@ -97,7 +97,7 @@ def run_train(args: argparse.Namespace) -> int:
     overrides = {
         "model": args.model, "scale": args.scale, "out": args.out, "steps": args.steps,
         "max_seconds": args.max_seconds, "threads": args.threads,
-        "cache_dirs": tuple(args.cache_dir) if args.cache_dir else None,
+        "data_dirs": tuple(args.data_dir) if args.data_dir else None,
         "ship": True if args.ship else None,
     }
     config = config_from_yaml(args.recipe, **{k: v for k, v in overrides.items() if v is not None})

@@ -48,11 +48,14 @@ from tiledsm.sr.registry import SRError, build
 
 __all__ = [
     "TrainConfig", "train", "load_images", "skimage_images", "synthetic_image",
-    "degrade_bicubic", "degrade_blur_noise", "evaluate", "checkpoint_path", "HELD_OUT", "TRAIN_SKIMAGE",
+    "degrade_bicubic", "degrade_blur_noise", "evaluate", "checkpoint_path", "HELD_OUT", "HELD_OUT_FILES", "TRAIN_SKIMAGE",
 ]
 
 #: scikit-image images kept out of training (held-out test set)
 HELD_OUT = ("camera", "coffee")
+#: image files never trained on, whatever folder holds them: the NEON tile of
+#: the held-out quality benchmark (``benchmarks/sr_quality.py``)
+HELD_OUT_FILES = ("OSBS_029.png",)
 #: scikit-image images used for training
 TRAIN_SKIMAGE = (
     "astronaut", "brick", "chelsea", "coins", "grass", "gravel", "moon", "rocket",
@@ -88,8 +91,10 @@ class TrainConfig:
         Adam learning rate (halved at 60 % and 85 % of the steps done).
     seed : int
         Seed of patch sampling and initialisation.
-    cache_dirs : tuple of str
-        Extra image folders (e.g. NEON tiles); not committed, not downloaded.
+    data_dirs : tuple of str
+        Image folders (e.g. ``../shared/data/sr_train``, the NEON aerial
+        tiles); not committed, never downloaded. Files named in
+        :data:`HELD_OUT_FILES` are skipped: they are the held-out test set.
     synthetic : int
         Number of synthetic renders (512 x 512) added to the data.
     use_skimage : bool
@@ -132,7 +137,7 @@ class TrainConfig:
     patch: int = 48
     lr: float = 1e-3
     seed: int = 0
-    cache_dirs: tuple[str, ...] = ()
+    data_dirs: tuple[str, ...] = ()
     synthetic: int = 4
     use_skimage: bool = True
     degradation: str | None = None
@@ -164,7 +169,7 @@ class TrainConfig:
             raise SRError(f"TrainConfig.patch ({self.patch}) must be a multiple of scale ({self.scale})")
         if self.model == "bicubic":
             raise SRError("TrainConfig.model: bicubic has nothing to train")
-        object.__setattr__(self, "cache_dirs", tuple(str(c) for c in self.cache_dirs))
+        object.__setattr__(self, "data_dirs", tuple(str(c) for c in self.data_dirs))
         object.__setattr__(self, "blur_range", tuple(float(v) for v in self.blur_range))
         object.__setattr__(self, "noise_range", tuple(float(v) for v in self.noise_range))
 
@@ -215,11 +220,14 @@ def load_images(config: TrainConfig) -> tuple[list[np.ndarray], list[str]]:
         for n, img in skimage_images(TRAIN_SKIMAGE).items():
             images.append(img)
             sources.append(f"skimage.data.{n}")
-    for d in config.cache_dirs:
+    for d in config.data_dirs:
         folder = Path(d)
         if not folder.is_dir():
-            raise SRError(f"TrainConfig.cache_dirs: {folder} is not a folder")
-        files = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".tif", ".tiff"))
+            raise SRError(f"TrainConfig.data_dirs: {folder} is not a folder")
+        files = sorted(
+            p for p in folder.iterdir()
+            if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".tif", ".tiff") and p.name not in HELD_OUT_FILES
+        )
         seen: set[str] = set()
         for p in sorted(files, key=lambda p: p.suffix.lower() in (".tif", ".tiff")):
             if p.stem in seen:  # same picture in two formats: keep the first (png/jpg)
@@ -442,7 +450,7 @@ def train(config: TrainConfig, log=print) -> dict:
         "scale": s,
         "params": dict(config.params),
         "data": sources,
-        "held_out": list(HELD_OUT),
+        "held_out": list(HELD_OUT) + list(HELD_OUT_FILES),
         "degradation": config.degradation,
         "steps": step,
         "steps_planned": config.steps,
@@ -477,7 +485,7 @@ def write_weights(model, config: TrainConfig, card: dict) -> Path:
         f"- degradation: {config.degradation}" + (f" (blur sigma {config.blur_range} HR px, noise std {config.noise_range}, "
                                             f"{'centred' if config.centred else 'pixel s//2::s'} sampling)" if config.degradation == "blur_noise" else " (antialiased bicubic, torch)"),
         f"- data ({len(card['data'])} images): " + ", ".join(card["data"]),
-        f"- held out (never trained on): {', '.join(HELD_OUT)} (scikit-image)",
+        f"- held out (never trained on): {', '.join(HELD_OUT)} (scikit-image), {', '.join(HELD_OUT_FILES)} (any data folder)",
         f"- final training MSE (normalised, last 100 steps): {card['final_loss_mse']:.3e}" if card["final_loss_mse"] is not None else "- final training MSE: none (no step)",
         "",
         "Held-out PSNR (dB, 8-bit peak, border of `scale` px cropped), measured after training:",
@@ -495,8 +503,10 @@ def write_weights(model, config: TrainConfig, card: dict) -> Path:
 
 def config_from_yaml(path: str | Path | None = None, **overrides) -> TrainConfig:
     """A :class:`TrainConfig` from a YAML mapping of its fields (top level or
-    under ``train:``), with ``overrides`` applied. Unknown fields raise
-    :class:`~tiledsm.errors.RecipeError` naming the file and the field."""
+    under ``train:``), with ``overrides`` applied. Relative ``data_dirs``
+    in the file are relative to the file's folder, as in every recipe.
+    Unknown fields raise :class:`~tiledsm.errors.RecipeError` naming the
+    file and the field."""
     import dataclasses
 
     import yaml
@@ -511,13 +521,14 @@ def config_from_yaml(path: str | Path | None = None, **overrides) -> TrainConfig
         doc = yaml.safe_load(p.read_text()) or {}
         if not isinstance(doc, dict):
             raise RecipeError(f"{p}: expected a mapping at the top level")
-        values = doc.get("train", doc)
+        values = dict(doc.get("train", doc))
+        values["data_dirs"] = [str(d) if Path(d).is_absolute() else str((p.parent / d).resolve()) for d in values.get("data_dirs") or ()]
         known = {f.name for f in dataclasses.fields(TrainConfig)}
         for key in values:
             if key not in known:
                 raise RecipeError(f"{p}: train.{key}: unknown field (known: {', '.join(sorted(known))})")
     values = {**values, **overrides}
-    for key in ("cache_dirs", "blur_range", "noise_range"):
+    for key in ("data_dirs", "blur_range", "noise_range"):
         if key in values and values[key] is not None:
             values[key] = tuple(values[key])
     try:

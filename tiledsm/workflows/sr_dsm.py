@@ -80,7 +80,9 @@ from tiledsm.recipes import (
     StrictModel,
 )
 
-from tiledsm.workflows.sr_scores import SRDSMError, compare_on_common, image_quality, markdown_report
+from tiledsm.workflows.sr_scores import (
+    RegionRule, SRDSMError, compare_by_region, compare_on_common, image_quality, markdown_report, regions_from_truth,
+)
 
 log = logging.getLogger("tiledsm")
 
@@ -308,7 +310,7 @@ def _hr_pair(recipe: SRDSMRecipe, out: Path) -> tuple[list[Path], dict]:
         sy = inp.synth
         log.info("making synthetic scene %s", sy.model_dump())
         scene = make_scene(out / "scene", size=sy.size, gsd=sy.gsd, bh=sy.bh, seed=sy.seed, views=sy.views, event=False)
-        info = {"truth": Path(scene.truth_dsm), "visible": Path(scene.visible_mask),
+        info = {"truth": Path(scene.truth_dsm), "visible": Path(scene.visible_mask), "label": Path(scene.truth_label),
                 "description": f"synthetic scene (size {sy.size} px, GSD {sy.gsd} m, B/H {sy.bh}, seed {sy.seed})"}
         return [Path(v) for v in scene.views[:2]], info
     views = [Path(p) for p in inp.images]
@@ -331,6 +333,20 @@ def _target_grid(recipe: SRDSMRecipe, info: dict) -> GroundGrid | None:
     if known is not None and not g.like:
         return grid_like(str(known), chunk=g.chunk)
     return grid_from_spec(g)
+
+
+def _write_blunder_map(heights: dict[str, np.ndarray], hr: np.ndarray, refs: dict, resolution: float, path: Path) -> Path:
+    """Blunder quick-look against the best reference there is: the truth
+    (visible ground), the given reference DSM, else the HR-pair DSM."""
+    from tiledsm.workflows.sr_figures import blunder_map
+
+    for key, title in (("vs_truth_visible", "against the truth, visible ground"), ("vs_reference", "against the reference DSM")):
+        if key in refs:
+            ref, mask = refs[key]
+            evaluated = np.ones(ref.shape, bool) if mask is None else mask
+            return blunder_map(heights, ref, evaluated, resolution, path, title)
+    return blunder_map({k: v for k, v in heights.items() if k != "hr"}, hr, np.ones(hr.shape, bool), resolution, path,
+                       "against the HR-pair DSM")
 
 
 # ----------------------------------------------------------------- runner
@@ -376,6 +392,7 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
             visible = reference_on_grid(info["visible"], hr_height).values > 0.5
             refs["vs_truth_visible"] = (truth.values, visible)
             metrics["truth"] = str(info["truth"])
+            label = reference_on_grid(info["label"], hr_height, resampling="nearest").values
         if "reference" in info:
             refs["vs_reference"] = (reference_on_grid(info["reference"], hr_height).values, None)
             metrics["reference"] = str(info["reference"])
@@ -420,6 +437,16 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
             methods[name] = row
             timings[name] = time.perf_counter() - t0
     scores, metrics["common"] = _score_tables(np.asarray(hr_height.values), method_heights, refs)
+    all_heights = {"hr": np.asarray(hr_height.values), **method_heights}
+    if "truth" in info:
+        rule = RegionRule()
+        regions = regions_from_truth(truth.values, label, visible, grid.resolution, rule)
+        metrics["regions"] = {
+            "rule": f"flat ground: slope < {rule.flat_max_deg:g} deg, steep terrain: >= {rule.steep_min_deg:g} deg",
+            "dsms": list(all_heights),
+            "tables": compare_by_region(all_heights, truth.values, regions),
+        }
+    _write_blunder_map(all_heights, np.asarray(hr_height.values), refs, grid.resolution, out / "blunders.png")
     metrics["hr"].update(scores.get("hr", {}))
     for name, row in methods.items():
         row.update(scores[name])

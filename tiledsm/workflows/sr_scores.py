@@ -4,11 +4,20 @@ method has (a fair table) and on each method's own cells, and the
 markdown report.
 
 Conventions: heights in metres; a cell is scored when finite in every
-height array compared (:func:`common_valid`).
+height array compared (:func:`common_valid`). A blunder is a scored cell
+whose error exceeds :data:`BLUNDER_K` times the NMAD of that DSM's errors
+on the same cells, away from their median (:func:`blunder_cells`): a
+bias is not a blunder.
+
+The method's four-region breakdown (:func:`regions_from_truth`) needs the
+synthetic truth: the class map (0 ground, 1 building, 2 tree, see
+:mod:`tiledsm.synth.terrain`), the truth heights (slopes) and the
+visibility mask (:mod:`tiledsm.synth.visibility`).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping
 
@@ -16,7 +25,8 @@ import numpy as np
 
 from tiledsm.errors import TiledsmError
 
-__all__ = ["SRDSMError", "LABELS", "image_quality", "common_valid", "scores_on", "own_completeness", "compare_on_common",
+__all__ = ["SRDSMError", "LABELS", "BLUNDER_K", "REGIONS", "RegionRule", "image_quality", "common_valid", "blunder_cells",
+           "scores_on", "own_completeness", "compare_on_common", "regions_from_truth", "compare_by_region",
            "common_cells_line", "markdown_report"]
 
 
@@ -29,6 +39,15 @@ class SRDSMError(TiledsmError):
 LABELS = {"dsm_upscale": "DSM upscale", "bicubic": "Bicubic", "srcnn": "SRCNN", "vdsr": "VDSR", "srmd": "SRMD",
           "srmd_official": "SRMD (published weights)",
           "hr": "HR pair", "lr": "LR pair"}
+
+
+#: a blunder's error is farther than this many NMADs from the median error
+#: (of the same DSM on the same cells)
+BLUNDER_K = 3.0
+
+#: the method's four regions, in the report's order, and how it names them
+REGIONS = {"buildings": "Buildings (roofs)", "steep": "Steep terrain", "flat": "Flat ground",
+           "mismatch_prone": "Mismatch-prone (trees, occlusions, edges)"}
 
 
 def image_quality(hr: np.ndarray, sr: np.ndarray, *, peak: float, border: int) -> dict:
@@ -82,6 +101,39 @@ def common_valid(*heights: np.ndarray) -> np.ndarray:
     return ok
 
 
+def blunder_cells(height: np.ndarray, reference: np.ndarray, cells: np.ndarray, k: float = BLUNDER_K) -> tuple[np.ndarray, float]:
+    """The scored cells whose error is a blunder.
+
+    Parameters
+    ----------
+    height, reference : numpy.ndarray
+        Heights on the same grid (metres; NaN = no height).
+    cells : numpy.ndarray
+        bool, the cells to score.
+    k : float
+        Threshold in NMADs.
+
+    Returns
+    -------
+    (numpy.ndarray, float)
+        bool grid, True where ``cells`` holds, both heights are finite and
+        ``|e - median(e)| > k * NMAD(e)``, ``e = height - reference`` over
+        those cells (a robust outlier rule: a uniform bias is not a
+        blunder); and the threshold ``k * NMAD`` (metres, NaN when no cell
+        is scored).
+    """
+    from tiledsm.compare.stats import difference_statistics
+
+    with np.errstate(invalid="ignore"):
+        err = np.asarray(height, np.float64) - np.asarray(reference, np.float64)
+        scored = np.asarray(cells, bool) & np.isfinite(err)
+        if not scored.any():
+            return np.zeros(err.shape, bool), float("nan")
+        stats = difference_statistics(err[scored])
+        threshold = k * stats["nmad"]
+        return scored & (np.abs(err - stats["median"]) > threshold), threshold
+
+
 def scores_on(height: np.ndarray, reference: np.ndarray, cells: np.ndarray) -> dict:
     """Statistics of ``height - reference`` on the selected cells only.
 
@@ -98,14 +150,21 @@ def scores_on(height: np.ndarray, reference: np.ndarray, cells: np.ndarray) -> d
         :func:`tiledsm.compare.stats.difference_statistics` of the selected
         cells: mean, median, std, rmse, mae, nmad, min, max (metres), mre
         (dimensionless ratio), count (scored cells with a height in both),
-        cells (selected cells), completeness (count / cells).
+        cells (selected cells), completeness (count / cells); and
+        ``blunder_rate`` (fraction of the counted cells that are blunders,
+        :func:`blunder_cells`) with its ``blunder_threshold`` (metres).
     """
     from tiledsm.compare.stats import difference_statistics
 
     sel = np.asarray(cells, bool)
     h = np.asarray(height, np.float64)[sel]
     ref = np.asarray(reference, np.float64)[sel]
-    return difference_statistics(h - ref, reference=ref)
+    out = difference_statistics(h - ref, reference=ref)
+    blunders, threshold = blunder_cells(height, reference, sel)
+    n_blunders = int(np.count_nonzero(blunders))
+    out["blunder_rate"] = n_blunders / out["count"] if out["count"] else float("nan")
+    out["blunder_threshold"] = threshold
+    return out
 
 
 def own_completeness(height: np.ndarray, evaluated: np.ndarray) -> dict:
@@ -173,6 +232,76 @@ def compare_on_common(heights: Mapping[str, np.ndarray], reference: np.ndarray,
     }
 
 
+@dataclass(frozen=True)
+class RegionRule:
+    """Slope limits of the four-region breakdown (degrees, from the truth
+    heights by central differences).
+
+    Attributes
+    ----------
+    flat_max_deg : float
+        Visible ground below this slope is "flat ground" (roads, fields).
+    steep_min_deg : float
+        Visible ground at or above it is "steep terrain". Ground between the
+        two limits is in no region.
+    """
+
+    flat_max_deg: float = 10.0
+    steep_min_deg: float = 25.0
+
+
+def regions_from_truth(truth: np.ndarray, label: np.ndarray, visible: np.ndarray, resolution: float,
+                       rule: RegionRule = RegionRule()) -> dict[str, np.ndarray]:
+    """The method's four regions on a synthetic scene, disjoint.
+
+    Parameters
+    ----------
+    truth : numpy.ndarray
+        Truth surface heights (metres).
+    label : numpy.ndarray
+        Surface class: 0 ground, 1 building, 2 tree.
+    visible : numpy.ndarray
+        bool, seen by every view and not an edge cell (``visible.tif``).
+    resolution : float
+        Cell size (metres).
+    rule : RegionRule
+        Slope limits.
+
+    Returns
+    -------
+    dict of str to numpy.ndarray
+        bool masks keyed as :data:`REGIONS`: ``mismatch_prone`` = trees
+        (repetitive texture that moves with the view) or cells not visible
+        (occluded in a view, or walls and borders); ``buildings`` = visible
+        roofs; ``steep`` / ``flat`` = visible ground by slope.
+    """
+    truth = np.asarray(truth, np.float64)
+    label = np.asarray(label)
+    visible = np.asarray(visible, bool)
+    if not (truth.shape == label.shape == visible.shape):
+        raise ValueError(f"regions_from_truth: shapes differ: truth {truth.shape}, label {label.shape}, visible {visible.shape}")
+    gy, gx = np.gradient(truth, float(resolution))
+    slope = np.degrees(np.arctan(np.hypot(gx, gy)))
+    ground = visible & (label == 0)
+    return {
+        "buildings": visible & (label == 1),
+        "steep": ground & (slope >= rule.steep_min_deg),
+        "flat": ground & (slope < rule.flat_max_deg),
+        "mismatch_prone": (label == 2) | ~visible,
+    }
+
+
+def compare_by_region(heights: Mapping[str, np.ndarray], reference: np.ndarray, regions: Mapping[str, np.ndarray]) -> dict:
+    """:func:`compare_on_common` in each region (each on its own common cells).
+
+    Returns
+    -------
+    dict
+        region name -> :func:`compare_on_common` result.
+    """
+    return {name: compare_on_common(heights, reference, mask) for name, mask in regions.items()}
+
+
 def _fmt(v, spec: str, scale: float = 1.0) -> str:
     if v is None or not np.isfinite(v):
         return "–"
@@ -208,6 +337,24 @@ def _common_lines(metrics: dict, key: str, reference: str) -> list[str]:
     return [] if common is None else [common_cells_line(common, reference), ""]
 
 
+def _region_lines(regions: dict) -> list[str]:
+    """Table 4: RMSE / NMAD / blunder rate per method in each region of
+    the four-region breakdown, each region on its own common cells."""
+    names = regions["dsms"]
+    lines = [
+        f"**Table 4.** Four-region breakdown against the synthetic truth ({regions['rule']}); "
+        f"each cell RMSE / NMAD (m) / blunders (%, |error - median| > {BLUNDER_K:g} NMAD), on the region's common cells.",
+        "",
+        "| Region | Common cells | " + " | ".join(LABELS.get(n, n) for n in names) + " |",
+        "|---|---|" + "---|" * len(names),
+    ]
+    for region, table in regions["tables"].items():
+        cells = [f"{_fmt(table['scores'][n]['rmse'], '.3f')} / {_fmt(table['scores'][n]['nmad'], '.3f')} / "
+                 f"{_fmt(table['scores'][n]['blunder_rate'], '.1f', 100)}" for n in names]
+        lines.append(f"| {REGIONS.get(region, region)} | {table['common']['count']} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def markdown_report(metrics: dict) -> str:
     """The run's ``report.md``: Table 1 (image quality) and Table 2 (DSM
     accuracy against the HR-pair DSM), plus Table 3 against the synthetic
@@ -216,7 +363,8 @@ def markdown_report(metrics: dict) -> str:
     The accuracy columns (metres; MRE in percent) of Tables 2 and 3 are on
     each table's common cells (``metrics["common"]``, see
     :func:`compare_on_common`), said in a line under the caption;
-    completeness (percent) is each DSM's own."""
+    completeness (percent) is each DSM's own. Table 4 (synthetic scenes)
+    breaks the comparison with the truth down by region."""
     m = metrics["methods"]
     sr = metrics["sr"]
     lines = [
@@ -240,13 +388,13 @@ def markdown_report(metrics: dict) -> str:
         "**Table 2.** DSM accuracy against the DSM of the HR pair.",
         "",
         *_common_lines(metrics, "vs_hr", "the HR-pair DSM"),
-        "| Method | RMSE (m) | MRE (%) | NMAD (m) | Completeness (%) |",
-        "|---|---|---|---|---|",
+        "| Method | RMSE (m) | MRE (%) | NMAD (m) | Blunders (%) | Completeness (%) |",
+        "|---|---|---|---|---|---|",
     ]
     for name, r in m.items():
         s = r["vs_hr"]
         lines.append(f"| {LABELS.get(name, name)} | {_fmt(s['rmse'], '.3f')} | {_fmt(s.get('mre'), '.4f', 100)} | "
-                     f"{_fmt(s['nmad'], '.3f')} | {_fmt(s['completeness'], '.1f', 100)} |")
+                     f"{_fmt(s['nmad'], '.3f')} | {_fmt(s.get('blunder_rate'), '.2f', 100)} | {_fmt(s['completeness'], '.1f', 100)} |")
     key, title = None, None
     if "vs_truth_visible" in metrics["hr"]:
         key, title = "vs_truth_visible", "the synthetic truth, on visible ground (cells seen by both views, edges excluded)"
@@ -258,12 +406,15 @@ def markdown_report(metrics: dict) -> str:
             f"**Table 3.** DSM accuracy against {title}.",
             "",
             *_common_lines(metrics, key, "the reference"),
-            "| Method | RMSE (m) | MRE (%) | NMAD (m) | Median (m) | Completeness (%) |",
-            "|---|---|---|---|---|---|",
+            "| Method | RMSE (m) | MRE (%) | NMAD (m) | Median (m) | Blunders (%) | Completeness (%) |",
+            "|---|---|---|---|---|---|---|",
         ]
         for name, r in {"hr": metrics["hr"], **m}.items():
             s = r[key]
             lines.append(f"| {LABELS.get(name, name)} | {_fmt(s['rmse'], '.3f')} | {_fmt(s.get('mre'), '.4f', 100)} | "
-                         f"{_fmt(s['nmad'], '.3f')} | {_fmt(s['median'], '+.3f')} | {_fmt(s['completeness'], '.1f', 100)} |")
+                         f"{_fmt(s['nmad'], '.3f')} | {_fmt(s['median'], '+.3f')} | {_fmt(s.get('blunder_rate'), '.2f', 100)} | "
+                         f"{_fmt(s['completeness'], '.1f', 100)} |")
+    if metrics.get("regions"):
+        lines += ["", *_region_lines(metrics["regions"])]
     lines += ["", "Timings (s): " + ", ".join(f"{LABELS.get(k, k)} {v:.1f}" for k, v in metrics["timings"].items()), ""]
     return "\n".join(lines)

@@ -42,7 +42,7 @@ def run_train_sr(recipe, out: Path, cluster: ClusterConfig | None = None, overwr
     from tiledsm.sr.train import TrainConfig, train
 
     values = dict(recipe.train)
-    for key in ("cache_dirs", "blur_range", "noise_range"):
+    for key in ("data_dirs", "blur_range", "noise_range"):
         if values.get(key) is not None:
             values[key] = tuple(values[key])
     values.setdefault("out", str(out / f"{values.get('model', 'model')}.pt"))

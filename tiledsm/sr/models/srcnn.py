@@ -9,7 +9,7 @@ import math
 import torch
 from torch import nn
 
-from tiledsm.sr.models._layers import BICUBIC_RADIUS, ReflectConv2d, bicubic_upsample, conv_radius
+from tiledsm.sr.models._layers import BICUBIC_RADIUS, PaddedConv2d, bicubic_upsample, conv_radius
 from tiledsm.sr.models.base import SRModel
 
 __all__ = ["SRCNN"]
@@ -17,7 +17,8 @@ __all__ = ["SRCNN"]
 
 class SRCNN(SRModel):
     """Bicubic pre-upsampling followed by three convolutions (9x9, 1x1, 5x5)
-    with ReLU after the first two; reflect padding before each.
+    with ReLU after the first two; padding before each (symmetric, as the
+    method states, unless ``padding`` says otherwise).
 
     Parameters
     ----------
@@ -33,15 +34,15 @@ class SRCNN(SRModel):
         missing detail and converges in far fewer steps.
     """
 
-    def __init__(self, scale: int = 2, features: tuple[int, int] = (64, 32), kernels: tuple[int, int, int] = (9, 1, 5), residual: bool = False) -> None:
+    def __init__(self, scale: int = 2, features: tuple[int, int] = (64, 32), kernels: tuple[int, int, int] = (9, 1, 5), residual: bool = False, padding: str = "symmetric") -> None:
         super().__init__(scale)
         f1, f2 = features
         k1, k2, k3 = kernels
         self.residual = bool(residual)
         self.body = nn.Sequential(
-            ReflectConv2d(1, f1, k1), nn.ReLU(inplace=True),
-            ReflectConv2d(f1, f2, k2), nn.ReLU(inplace=True),
-            ReflectConv2d(f2, 1, k3),
+            PaddedConv2d(1, f1, k1, pad_mode=padding), nn.ReLU(inplace=True),
+            PaddedConv2d(f1, f2, k2, pad_mode=padding), nn.ReLU(inplace=True),
+            PaddedConv2d(f2, 1, k3, pad_mode=padding),
         )
 
     @property

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from tiledsm.sr.models._layers import BICUBIC_RADIUS, ReflectConv2d, bicubic_upsample, conv_radius
+from tiledsm.sr.models._layers import BICUBIC_RADIUS, PaddedConv2d, bicubic_upsample, conv_radius
 from tiledsm.sr.models.base import SRModel
 
 __all__ = ["SRMD", "gaussian_kernel", "kernel_pca_basis", "KERNEL_SIZE"]
@@ -66,8 +66,9 @@ def kernel_pca_basis(dim: int = 15, size: int = KERNEL_SIZE) -> np.ndarray:
 class SRMD(SRModel):
     """SRMD network: ``layers`` 3x3 convolutions on the LR grid (ReLU after
     each but the last, batch norm in the middle ones), the last producing
-    ``scale**2`` channels rearranged by pixel shuffle. Reflect padding
-    before each convolution.
+    ``scale**2`` channels rearranged by pixel shuffle. Padding before each
+    convolution (symmetric, as the method states, unless ``padding`` says
+    otherwise).
 
     Parameters
     ----------
@@ -84,6 +85,9 @@ class SRMD(SRModel):
         skip, as in VDSR; the paper has none: ``False``). The last layer
         then starts at zero, so the untrained network is exactly bicubic
         and a short training schedule only has to learn the missing detail.
+    padding : str
+        Padding before each convolution, one of
+        :data:`~tiledsm.sr.models._layers.PAD_MODES`.
 
     Notes
     -----
@@ -94,16 +98,16 @@ class SRMD(SRModel):
 
     takes_degradation = True
 
-    def __init__(self, scale: int = 2, layers: int = 12, features: int = 128, pca_dim: int = 15, residual: bool = False) -> None:
+    def __init__(self, scale: int = 2, layers: int = 12, features: int = 128, pca_dim: int = 15, residual: bool = False, padding: str = "symmetric") -> None:
         super().__init__(scale)
         if layers < 2:
             raise ValueError(f"SRMD: layers must be >= 2, got {layers}")
         # torch.tensor copies: the cached basis is read-only (as_tensor warned)
         self.register_buffer("pca", torch.tensor(kernel_pca_basis(pca_dim), dtype=torch.float32))
-        mods: list[nn.Module] = [ReflectConv2d(1 + pca_dim + 1, features, 3), nn.ReLU(inplace=True)]
+        mods: list[nn.Module] = [PaddedConv2d(1 + pca_dim + 1, features, 3, pad_mode=padding), nn.ReLU(inplace=True)]
         for _ in range(layers - 2):
-            mods += [ReflectConv2d(features, features, 3, bias=False), nn.BatchNorm2d(features), nn.ReLU(inplace=True)]
-        last = ReflectConv2d(features, self.scale**2, 3)
+            mods += [PaddedConv2d(features, features, 3, bias=False, pad_mode=padding), nn.BatchNorm2d(features), nn.ReLU(inplace=True)]
+        last = PaddedConv2d(features, self.scale**2, 3, pad_mode=padding)
         mods += [last, nn.PixelShuffle(self.scale)]
         self.body = nn.Sequential(*mods)
         self.residual = bool(residual)

@@ -21,7 +21,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from tiledsm.sr.models._layers import ZeroPadConv2d, conv_radius
+from tiledsm.sr.models._layers import PaddedConv2d, conv_radius
 from tiledsm.sr.models.base import SRModel
 
 __all__ = ["OfficialSRMD", "PCA_DIM"]
@@ -62,10 +62,10 @@ class OfficialSRMD(SRModel):
         self.noise_level = None if noise_level is None else float(noise_level)
         maps = PCA_DIM + (0 if noise_level is None else 1)
         self.register_buffer("code", torch.zeros(PCA_DIM))
-        mods: list[nn.Module] = [ZeroPadConv2d(1 + maps, features, 3), nn.ReLU(inplace=True)]
+        mods: list[nn.Module] = [PaddedConv2d(1 + maps, features, 3, pad_mode="zeros"), nn.ReLU(inplace=True)]
         for _ in range(layers - 2):
-            mods += [ZeroPadConv2d(features, features, 3), nn.ReLU(inplace=True)]
-        mods += [ZeroPadConv2d(features, self.scale**2, 3), nn.PixelShuffle(self.scale)]
+            mods += [PaddedConv2d(features, features, 3, pad_mode="zeros"), nn.ReLU(inplace=True)]
+        mods += [PaddedConv2d(features, self.scale**2, 3, pad_mode="zeros"), nn.PixelShuffle(self.scale)]
         self.body = nn.Sequential(*mods)
 
     @property
