@@ -22,7 +22,7 @@ centres, white noise of ``--noise`` (in units of the crop's maximum; seed
 0). Our SRMD is told that blur and noise (its degradation maps); the other
 networks know only bicubic.
 
-Methods: bicubic; SRCNN, VDSR and our SRMD (``blur_sigma`` 0.3, the best
+Methods: bicubic; SRCNN, its residual variant, VDSR and our SRMD (``blur_sigma`` 0.3, the best
 setting of the shipped SRMD for this degradation, noise 0); the published
 SRMDNF weights converted by :mod:`tiledsm.sr.ncnn` (``srmd_official``). At
 x4 our networks have x2 weights only and run twice (``scheme`` x2x2); the
@@ -91,7 +91,7 @@ def _methods(scale: int) -> list[tuple[str, str, list[tuple[str, int]], dict]]:
     twice = [(2,)] * (scale // 2) if scale == 4 else None
     srmd_kw = {"blur_sigma": 0.3, "noise": 0.0}
     rows = [("bicubic", f"x{scale}", [("bicubic", scale)], {})]
-    for name, kw in (("srcnn", {}), ("vdsr", {}), ("srmd", srmd_kw)):
+    for name, kw in (("srcnn", {}), ("srcnn_residual", {}), ("vdsr", {}), ("srmd", srmd_kw)):
         chain = [(name, 2)] * 2 if twice else [(name, scale)]
         rows.append((name, "x2x2" if twice else f"x{scale}", chain, kw))
     rows.append(("srmd_official", f"x{scale}", [("srmd_official", scale)], {}))

@@ -36,7 +36,8 @@ class SRDSMError(TiledsmError):
 
 
 #: how the report names each method
-LABELS = {"dsm_upscale": "DSM upscale", "bicubic": "Bicubic", "srcnn": "SRCNN", "vdsr": "VDSR", "srmd": "SRMD",
+LABELS = {"dsm_upscale": "DSM upscale", "bicubic": "Bicubic", "srcnn": "SRCNN", "srcnn_residual": "SRCNN (residual variant)",
+          "vdsr": "VDSR", "srmd": "SRMD",
           "srmd_official": "SRMD (published weights)",
           "hr": "HR pair", "lr": "LR pair"}
 
