@@ -108,6 +108,10 @@ def test_degradation_arguments_checked():
         super_resolve(scene, build("srcnn", scale=2), 2, blur_sigma=1.0, value_scale=VALUE_SCALE)
     with pytest.raises(SRError, match="needs blur_sigma"):
         super_resolve(scene, build("srmd", scale=2), 2, value_scale=VALUE_SCALE)
+    with pytest.raises(SRError, match="'bicubic'"):
+        super_resolve(scene, build("srmd", scale=2), 2, blur_sigma="box", value_scale=VALUE_SCALE)
+    out = super_resolve(scene, build("srmd", scale=2), 2, blur_sigma="bicubic", noise=0.0, value_scale=VALUE_SCALE)
+    assert out.attrs["sr_blur_sigma"] == "bicubic" and out.shape == (40, 40)
     with pytest.raises(SRError, match="built for scale x2, asked for x3"):
         super_resolve(scene, build("srcnn", scale=2), 3)
 

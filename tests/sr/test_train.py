@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from tiledsm.sr import load_weights
-from tiledsm.sr.models.srmd import gaussian_kernel
+from tiledsm.sr.models.srmd import SRMD, bicubic_kernel, gaussian_kernel
 from tiledsm.sr.registry import SRError
 from tiledsm.sr.train import TrainConfig, degrade_bicubic, degrade_blur_noise, synthetic_image, train
 
@@ -121,3 +121,48 @@ def test_card_lists_cache_images_with_checksums(tmp_path):
                              synthetic=0, data_dirs=(str(folder),), eval_crop=32), log=lambda m: None)
     digest = hashlib.sha256((folder / "t.png").read_bytes()).hexdigest()[:16]
     assert card["data"] == [f"tiles/t.png sha256:{digest}"]
+
+
+def test_bicubic_kernel_is_keys_kernel_stretched_by_the_scale():
+    """Analytic oracle: Keys' cubic (a = -0.5) at t = |r| / 2 for scale 2 is
+    1, 0.5625, 0, -0.0625, 0 at t = 0, 0.5, 1, 1.5, 2 (then zero)."""
+    k = bicubic_kernel(2)
+    w = np.array([-0.0625, 0, 0.5625, 1, 0.5625, 0, -0.0625])
+    expect = np.zeros((15, 15))
+    expect[4:11, 4:11] = np.outer(w, w) / w.sum() ** 2
+    np.testing.assert_allclose(k, expect, atol=1e-12)
+    assert bicubic_kernel(4).sum() == pytest.approx(1.0) and (bicubic_kernel(4) < 0).any()
+
+
+def test_srmd_takes_the_bicubic_code_per_image_and_per_batch_item():
+    torch.manual_seed(0)
+    model = SRMD(scale=2, layers=3, features=8).eval()
+    x = torch.rand(3, 1, 12, 12)
+    code_bic = model.degradation_code("bicubic", 0.0)
+    code_gauss = model.degradation_code(0.8, 0.0)
+    # the bicubic kernel's negative lobes make a code no Gaussian has
+    assert float((code_bic - code_gauss).abs().max()) > 0.01
+    with torch.no_grad():
+        mixed = model(x, blur_sigma=["bicubic", 0.8, "bicubic"], noise=[0.0, 0.01, 0.02])
+        one = [model(x[i : i + 1], blur_sigma=b, noise=n) for i, (b, n) in enumerate((("bicubic", 0.0), (0.8, 0.01), ("bicubic", 0.02)))]
+    torch.testing.assert_close(mixed, torch.cat(one))
+    with pytest.raises(ValueError, match="bicubic"):
+        model(x, blur_sigma="gaussian")
+
+
+def test_train_with_a_share_of_bicubic_patches_scores_both_degradations(tmp_path):
+    cfg = TrainConfig(model="srmd", scale=2, out=str(tmp_path / "srmd_x2.pt"), steps=2, batch=4, patch=16, bicubic_fraction=0.5,
+                      use_skimage=False, synthetic=1, params={"layers": 3, "features": 8}, eval_crop=64)
+    card = train(cfg, log=lambda m: None)
+    assert set(card["heldout_psnr_bicubic_lr_db"]) == {"camera", "coffee"}
+    # the bicubic-LR table scores bicubic on bicubic-made LR: the number evaluate() gives a Bicubic model
+    from tiledsm.sr.models.bicubic import Bicubic
+    from tiledsm.sr.train import evaluate, skimage_images
+
+    held = {k: v[(v.shape[0] - 64) // 2:][:64, (v.shape[1] - 64) // 2:][:, :64] for k, v in skimage_images(("camera", "coffee")).items()}
+    ref = evaluate(Bicubic(2), 2, held, degradation="bicubic")
+    for name in ("camera", "coffee"):
+        assert card["heldout_psnr_bicubic_lr_db"][name]["bicubic"] == pytest.approx(ref[name]["model"], abs=1e-9)
+    assert "bicubic kernel" in (tmp_path / "srmd_x2.md").read_text()
+    with pytest.raises(SRError, match="bicubic_fraction"):
+        TrainConfig(model="srcnn", bicubic_fraction=0.5)

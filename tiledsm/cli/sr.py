@@ -11,6 +11,16 @@ from tiledsm.cli.run import add_cluster_arguments, add_plan_arguments, cluster_c
 __all__ = ["add_parser", "run_sr", "run_train", "write_sr"]
 
 
+def _blur_sigma(text: str) -> float | str:
+    """``--blur-sigma``: a sigma in HR pixels, or ``bicubic``."""
+    if text == "bicubic":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a sigma in HR pixels or 'bicubic', got {text!r}") from None
+
+
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "sr",
@@ -21,12 +31,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("input", help="image with an RPC (tags or sidecar)")
     p.add_argument("output", help="output .tif (GeoTIFF + RPC tags) or .zarr")
-    p.add_argument("--model", default="srmd_official", choices=["bicubic", "srcnn", "vdsr", "srmd", "srmd_official"],
+    p.add_argument("--model", default="srmd_official", choices=["bicubic", "srcnn", "srcnn_residual", "vdsr", "srmd", "srmd_official"],
                    help="SR network (default: the published SRMD weights, the best on held-out images; "
                         "srcnn is about 10x faster)")
     p.add_argument("--scale", type=int, default=2)
     p.add_argument("--weights", default=None, help="weights file (default: the shipped weights of --model at --scale)")
-    p.add_argument("--blur-sigma", type=float, default=None, help="SRMD: Gaussian blur sigma of the LR image, HR pixels")
+    p.add_argument("--blur-sigma", type=_blur_sigma, default=None,
+                   help="SRMD: Gaussian blur sigma of the LR image, HR pixels, or 'bicubic' (LR made by bicubic downsampling)")
     p.add_argument("--noise", type=float, default=None, help="SRMD: noise standard deviation, digital numbers")
     p.add_argument("--bit-depth", type=int, default=None, help="sensor bit depth (default: smallest of 8/10/11/12/14/16 covering the data)")
     p.add_argument("--chunk", type=int, default=512, help="tile side, input pixels")

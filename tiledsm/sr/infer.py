@@ -34,6 +34,7 @@ import xarray as xr
 from torch import nn
 
 from tiledsm.sr.models.base import SRModel
+from tiledsm.sr.models.srmd import BICUBIC
 from tiledsm.sr.registry import SRError, load_pretrained
 
 __all__ = ["sr_array", "super_resolve", "resolve_model", "value_scale_for", "BIT_DEPTHS"]
@@ -59,10 +60,16 @@ def _degradation_kwargs(model: SRModel, blur_sigma: float | None, noise: float |
             raise SRError(f"{type(model).__name__} takes no degradation parameters (blur_sigma, noise); only SRMD does")
         return {}
     if blur_sigma is None:
-        raise SRError(f"{type(model).__name__} needs blur_sigma (Gaussian sigma of the LR blur, HR pixels)")
-    if blur_sigma < 0 or (noise is not None and noise < 0):
-        raise SRError(f"blur_sigma and noise must be >= 0, got {blur_sigma}, {noise}")
-    return {"blur_sigma": float(blur_sigma), "noise": float(noise or 0.0) / value_scale}
+        raise SRError(f"{type(model).__name__} needs blur_sigma (Gaussian sigma of the LR blur, HR pixels, or 'bicubic')")
+    if isinstance(blur_sigma, str):
+        if blur_sigma != BICUBIC:
+            raise SRError(f"blur_sigma must be a sigma in HR pixels or {BICUBIC!r}, got {blur_sigma!r}")
+    elif blur_sigma < 0:
+        raise SRError(f"blur_sigma must be >= 0, got {blur_sigma}")
+    if noise is not None and noise < 0:
+        raise SRError(f"noise must be >= 0, got {noise}")
+    blur = blur_sigma if isinstance(blur_sigma, str) else float(blur_sigma)
+    return {"blur_sigma": blur, "noise": float(noise or 0.0) / value_scale}
 
 
 def sr_array(
@@ -71,7 +78,7 @@ def sr_array(
     *,
     value_scale: float = 1.0,
     device: str = "cpu",
-    blur_sigma: float | None = None,
+    blur_sigma: float | str | None = None,
     noise: float | None = None,
 ) -> np.ndarray:
     """Super-resolve one 2-D image in one network call (the in-memory kernel).
@@ -87,7 +94,8 @@ def sr_array(
     device : str
         Torch device (``"cpu"``, ``"cuda"``).
     blur_sigma, noise : float, optional
-        SRMD only: blur sigma (HR pixels) and noise std (digital numbers).
+        SRMD only: blur sigma (HR pixels, or ``"bicubic"``) and noise std
+        (digital numbers).
 
     Returns
     -------
@@ -183,7 +191,7 @@ def super_resolve(
     scale: int,
     *,
     device: str = "cpu",
-    blur_sigma: float | None = None,
+    blur_sigma: float | str | None = None,
     noise: float | None = None,
     value_scale: float | None = None,
     chunks: int | None = None,
@@ -204,8 +212,9 @@ def super_resolve(
         Upscaling factor.
     device : str
         Torch device for the network (``"cpu"`` always works).
-    blur_sigma : float, optional
-        SRMD: Gaussian blur sigma of the LR image formation, HR pixels.
+    blur_sigma : float or "bicubic", optional
+        SRMD: Gaussian blur sigma of the LR image formation, HR pixels, or
+        ``"bicubic"`` for LR images made by bicubic downsampling.
     noise : float, optional
         SRMD: noise standard deviation, digital numbers.
     value_scale : float, optional
@@ -279,7 +288,7 @@ def super_resolve(
     if getattr(net, "weights_file", None):
         attrs["sr_weights"] = net.weights_file.rsplit("/", 1)[-1]
     if net.takes_degradation:
-        attrs.update(sr_blur_sigma=float(blur_sigma), sr_noise=float(noise or 0.0))
+        attrs.update(sr_blur_sigma=blur_sigma if isinstance(blur_sigma, str) else float(blur_sigma), sr_noise=float(noise or 0.0))
     result = xr.DataArray(out, dims=scene.dims, coords=coords, attrs=attrs, name=scene.name)
     return _scaled_georeference(scene, result, scale)
 

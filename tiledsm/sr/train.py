@@ -43,7 +43,7 @@ import torch.nn.functional as F
 
 from tiledsm.sr.metrics import psnr
 from tiledsm.sr.models import Bicubic
-from tiledsm.sr.models.srmd import KERNEL_SIZE, gaussian_kernel
+from tiledsm.sr.models.srmd import BICUBIC, KERNEL_SIZE, gaussian_kernel
 from tiledsm.sr.registry import SRError, build
 
 __all__ = [
@@ -104,6 +104,11 @@ class TrainConfig:
         SRMD, ``bicubic`` otherwise).
     blur_range, noise_range : tuple of float
         SRMD degradation families (HR px; normalised noise std).
+    bicubic_fraction : float
+        ``blur_noise`` only: share of the patches degraded by the
+        antialiased bicubic kernel (then noise) instead of a Gaussian, with
+        the bicubic kernel's code (``blur_sigma="bicubic"``), so that SRMD
+        also serves LR images made the usual way.
     centred : bool
         ``blur_noise`` only: sample the LR pixels at their centres (corner
         convention, see the module notes) instead of at pixel ``s//2``.
@@ -143,6 +148,7 @@ class TrainConfig:
     degradation: str | None = None
     blur_range: tuple[float, float] = (0.2, 2.6)
     noise_range: tuple[float, float] = (0.0, 25.0 / 255.0)
+    bicubic_fraction: float = 0.0
     centred: bool = True
     half: bool = False
     params: dict = field(default_factory=dict)
@@ -165,6 +171,8 @@ class TrainConfig:
             object.__setattr__(self, "degradation", "blur_noise" if self.model == "srmd" else "bicubic")
         if self.degradation not in ("bicubic", "blur_noise"):
             raise SRError(f"TrainConfig.degradation: expected 'bicubic' or 'blur_noise', got {self.degradation!r}")
+        if not 0.0 <= self.bicubic_fraction <= 1.0 or (self.bicubic_fraction and self.degradation != "blur_noise"):
+            raise SRError(f"TrainConfig.bicubic_fraction: a share in [0, 1] of a blur_noise training, got {self.bicubic_fraction}")
         if self.patch % self.scale:
             raise SRError(f"TrainConfig.patch ({self.patch}) must be a multiple of scale ({self.scale})")
         if self.model == "bicubic":
@@ -329,7 +337,7 @@ def evaluate(model, scale: int, images: dict[str, np.ndarray] | None = None, deg
         hr = torch.from_numpy(np.ascontiguousarray(img[:h, :w]))[None, None]
         if degradation == "bicubic":
             lr = degrade_bicubic(hr, scale)
-            kw = {}
+            kw = {"blur_sigma": BICUBIC, "noise": 0.0} if getattr(model, "takes_degradation", False) else {}
         else:
             lr = degrade_blur_noise(hr, scale, torch.tensor([blur_sigma]), torch.tensor([noise]), gen, centred=centred)
             kw = {"blur_sigma": blur_sigma, "noise": noise}
@@ -349,7 +357,10 @@ _RUN_ONLY = ("out", "max_seconds", "threads", "checkpoint", "checkpoint_every", 
 
 
 def _identity(config: TrainConfig) -> str:
-    return json.dumps({k: v for k, v in asdict(config).items() if k not in _RUN_ONLY}, sort_keys=True, default=str)
+    fields = {k: v for k, v in asdict(config).items() if k not in _RUN_ONLY}
+    if not fields["bicubic_fraction"]:
+        del fields["bicubic_fraction"]  # added later: checkpoints written before it stay valid
+    return json.dumps(fields, sort_keys=True, default=str)
 
 
 def checkpoint_path(config: TrainConfig) -> Path:
@@ -417,7 +428,14 @@ def train(config: TrainConfig, log=print) -> dict:
             nlo, nhi = config.noise_range
             noise = torch.rand(config.batch, generator=gen) * (nhi - nlo) + nlo
             lr_img = degrade_blur_noise(hr, s, sigma, noise, gen, centred=config.centred)
-            pred = model(lr_img, blur_sigma=sigma, noise=noise)
+            blur = sigma.tolist()
+            if config.bicubic_fraction:
+                bic = torch.rand(config.batch, generator=gen) < config.bicubic_fraction
+                if bic.any():
+                    lr_bic = degrade_bicubic(hr[bic], s)
+                    lr_img[bic] = lr_bic + noise[bic][:, None, None, None] * torch.randn(lr_bic.shape, generator=gen)
+                    blur = [BICUBIC if b else v for b, v in zip(bic.tolist(), blur)]
+            pred = model(lr_img, blur_sigma=blur, noise=noise)
         loss = F.mse_loss(pred, hr)
         opt.zero_grad()
         loss.backward()
@@ -460,6 +478,7 @@ def train(config: TrainConfig, log=print) -> dict:
         "threads": config.threads,
         "final_loss_mse": float(np.mean(losses[-100:])) if losses else None,
         "heldout_psnr_db": held,
+        **({"heldout_psnr_bicubic_lr_db": evaluate(model, s, held_images, degradation="bicubic")} if config.bicubic_fraction else {}),
         "heldout_eval": {"degradation": config.degradation, **eval_kw, "centred": config.centred, "peak": 255, "border": s, "crop": config.eval_crop},
         "config": {k: v for k, v in asdict(config).items() if k not in ("out", "checkpoint", "ship")},
         "torch": torch.__version__,
@@ -483,7 +502,9 @@ def write_weights(model, config: TrainConfig, card: dict) -> Path:
         + f"- trained: {card['steps']} Adam steps of {config.batch} patches {config.patch}x{config.patch} (HR), "
         f"{card['seconds']} s on {card['device']} with {card['threads']} thread(s), seed {config.seed}",
         f"- degradation: {config.degradation}" + (f" (blur sigma {config.blur_range} HR px, noise std {config.noise_range}, "
-                                            f"{'centred' if config.centred else 'pixel s//2::s'} sampling)" if config.degradation == "blur_noise" else " (antialiased bicubic, torch)"),
+                                            f"{'centred' if config.centred else 'pixel s//2::s'} sampling"
+                                            + (f"; {config.bicubic_fraction} of the patches by the bicubic kernel" if config.bicubic_fraction else "") + ")"
+                                            if config.degradation == "blur_noise" else " (antialiased bicubic, torch)"),
         f"- data ({len(card['data'])} images): " + ", ".join(card["data"]),
         f"- held out (never trained on): {', '.join(HELD_OUT)} (scikit-image), {', '.join(HELD_OUT_FILES)} (any data folder)",
         f"- final training MSE (normalised, last 100 steps): {card['final_loss_mse']:.3e}" if card["final_loss_mse"] is not None else "- final training MSE: none (no step)",
@@ -495,6 +516,12 @@ def write_weights(model, config: TrainConfig, card: dict) -> Path:
     ]
     for name, r in card["heldout_psnr_db"].items():
         lines.append(f"| {name} | {r['model']:.2f} | {r['bicubic']:.2f} | {r['model'] - r['bicubic']:+.2f} |")
+    if "heldout_psnr_bicubic_lr_db" in card:
+        lines += ["", f"The same images degraded by the bicubic kernel alone (a share of {config.bicubic_fraction} of the "
+                  "training patches), the model told `blur_sigma=\"bicubic\"`:", "",
+                  "| image | model | bicubic | gain |", "|---|---|---|---|"]
+        for name, r in card["heldout_psnr_bicubic_lr_db"].items():
+            lines.append(f"| {name} | {r['model']:.2f} | {r['bicubic']:.2f} | {r['model'] - r['bicubic']:+.2f} |")
     if card.get("note"):
         lines += ["", card["note"]]
     out.with_suffix(".md").write_text("\n".join(lines) + "\n")

@@ -61,7 +61,7 @@ import logging
 import math
 import time
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Annotated, Literal, Optional, Union
 
 import numpy as np
 import xarray as xr
@@ -114,9 +114,10 @@ class SRSpec(StrictModel):
     degrade_sigma: Optional[float] = Field(None, gt=0, description="gaussian kernel sigma, HR px (default scale / 2)")
     lr_noise: float = Field(0.0, ge=0, description="noise added to the LR images, DN (std)")
     bit_depth: int = Field(12, ge=8, le=16, description="sensor bit depth: SR normalisation and PSNR peak")
-    srmd_blur_sigma: float = Field(
-        0.3, ge=0,
-        description="SRMD's Gaussian blur sigma, HR px (0.3: best PSNR of the shipped SRMD on the held-out "
+    srmd_blur_sigma: Union[Literal["bicubic"], Annotated[float, Field(ge=0)]] = Field(
+        0.3,
+        description="SRMD's blur: a Gaussian sigma in HR px, or 'bicubic' (SRMD trained with the bicubic kernel) "
+                    "(0.3: best PSNR of the shipped SRMD on the held-out "
                     "camera/coffee images degraded by bicubic x2; the least-squares Gaussian fit of that "
                     "kernel, 0.8, over-sharpens: -0.6 dB)")
     srmd_noise: float = Field(0.0, ge=0, description="SRMD's noise level, DN (std)")

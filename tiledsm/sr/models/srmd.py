@@ -6,7 +6,9 @@ Degradation model: ``LR = (HR * k)↓s + n`` with ``k`` a Gaussian blur
 kernel, ``↓s`` direct downsampling (every ``s``-th pixel) and ``n`` white
 Gaussian noise. The network takes the LR image plus ``t + 1`` constant
 maps: the kernel projected on a ``t``-dimensional PCA basis and the noise
-level.
+level. Besides Gaussians, the kernel may be the antialiased bicubic one
+(``blur_sigma="bicubic"``, :data:`BICUBIC`): the degradation most LR
+images of SR benchmarks (and of the SR -> DSM experiment) come from.
 """
 
 from __future__ import annotations
@@ -20,10 +22,13 @@ from torch import nn
 from tiledsm.sr.models._layers import BICUBIC_RADIUS, PaddedConv2d, bicubic_upsample, conv_radius
 from tiledsm.sr.models.base import SRModel
 
-__all__ = ["SRMD", "gaussian_kernel", "kernel_pca_basis", "KERNEL_SIZE"]
+__all__ = ["SRMD", "gaussian_kernel", "bicubic_kernel", "kernel_pca_basis", "KERNEL_SIZE", "BICUBIC"]
 
 #: side of the blur kernels (HR pixels)
 KERNEL_SIZE = 15
+
+#: the ``blur_sigma`` that selects the antialiased bicubic kernel
+BICUBIC = "bicubic"
 
 
 def gaussian_kernel(sigma_x: float, sigma_y: float | None = None, theta: float = 0.0, size: int = KERNEL_SIZE) -> np.ndarray:
@@ -44,10 +49,39 @@ def gaussian_kernel(sigma_x: float, sigma_y: float | None = None, theta: float =
     return k / k.sum()
 
 
+def bicubic_kernel(scale: int, size: int = KERNEL_SIZE) -> np.ndarray:
+    """The antialiased bicubic downsampling kernel by ``scale`` (Keys,
+    ``a = -0.5``, stretched by ``scale``: support ``4 scale`` HR px), ``size x
+    size``, centred on the middle pixel, sum 1.
+
+    As for the Gaussians, the half-pixel shift of sampling at LR pixel
+    centres belongs to the sampler, not to the kernel: this is the kernel's
+    shape, the one its degradation code describes. Its negative lobes are
+    what a Gaussian cannot describe.
+    """
+    t = np.abs(np.arange(size) - size // 2) / float(scale)
+    a = -0.5
+    w = np.where(t <= 1, (a + 2) * t**3 - (a + 3) * t**2 + 1, np.where(t < 2, a * t**3 - 5 * a * t**2 + 8 * a * t - 4 * a, 0.0))
+    k = np.outer(w, w)
+    return k / k.sum()
+
+
+def blur_kernel(blur_sigma: float | str, scale: int) -> np.ndarray:
+    """The kernel a ``blur_sigma`` names: :func:`bicubic_kernel` for
+    :data:`BICUBIC`, else an isotropic Gaussian of that sigma (HR px)."""
+    if isinstance(blur_sigma, str):
+        if blur_sigma != BICUBIC:
+            raise ValueError(f"SRMD: blur_sigma must be a sigma in HR px or {BICUBIC!r}, got {blur_sigma!r}")
+        return bicubic_kernel(scale)
+    return gaussian_kernel(float(blur_sigma))
+
+
 @functools.lru_cache(maxsize=8)
 def kernel_pca_basis(dim: int = 15, size: int = KERNEL_SIZE) -> np.ndarray:
-    """PCA basis ``(dim, size * size)`` of a fixed family of Gaussian kernels
-    (isotropic and anisotropic, sigma 0.2-4 HR px, 8 orientations).
+    """PCA basis ``(dim, size * size)`` of a fixed family of kernels: Gaussians
+    (isotropic and anisotropic, sigma 0.2-4 HR px, 8 orientations) and the
+    bicubic kernels of scales 2, 3 and 4 (weighted as 20 Gaussians each, so
+    that their negative lobes get a component of the code).
 
     The basis is stored in the model's state_dict, so shipped weights carry
     the basis they were trained with (SVD signs are library-dependent)."""
@@ -56,6 +90,8 @@ def kernel_pca_basis(dim: int = 15, size: int = KERNEL_SIZE) -> np.ndarray:
         for sy in np.linspace(0.2, 4.0, 20):
             for th in np.linspace(0, np.pi, 8, endpoint=False):
                 kernels.append(gaussian_kernel(sx, sy, th, size).ravel())
+    for scale in (2, 3, 4):
+        kernels += [bicubic_kernel(scale, size).ravel()] * 20
     a = np.asarray(kernels)
     _, _, vt = np.linalg.svd(a, full_matrices=False)
     basis = vt[:dim].copy()
@@ -92,8 +128,9 @@ class SRMD(SRModel):
     Notes
     -----
     ``forward(x, blur_sigma, noise)``: ``blur_sigma`` is the isotropic
-    Gaussian sigma in HR pixels; ``noise`` is the noise standard deviation
-    in normalised units (same scale as ``x``).
+    Gaussian sigma in HR pixels, or :data:`BICUBIC`; ``noise`` is the noise
+    standard deviation in normalised units (same scale as ``x``). Both may be
+    given per batch item (a sequence or 1-D tensor of length ``N``).
     """
 
     takes_degradation = True
@@ -122,19 +159,23 @@ class SRMD(SRModel):
         r = conv_radius(self.body)
         return max(r, BICUBIC_RADIUS) if self.residual else r
 
-    def degradation_code(self, blur_sigma: float, noise: float) -> torch.Tensor:
+    def degradation_code(self, blur_sigma: float | str, noise: float) -> torch.Tensor:
         """The ``t + 1`` degradation values (PCA code of the kernel, noise)."""
-        k = torch.as_tensor(gaussian_kernel(float(blur_sigma)).ravel(), dtype=self.pca.dtype, device=self.pca.device)
+        k = torch.as_tensor(blur_kernel(blur_sigma, self.scale).ravel(), dtype=self.pca.dtype, device=self.pca.device)
         code = self.pca @ k
         return torch.cat([code, torch.as_tensor([float(noise)], dtype=code.dtype, device=code.device)])
 
-    def forward(self, x: torch.Tensor, blur_sigma: float | torch.Tensor = 1.0, noise: float | torch.Tensor = 0.0) -> torch.Tensor:  # noqa: D102
+    def forward(self, x: torch.Tensor, blur_sigma=1.0, noise=0.0) -> torch.Tensor:  # noqa: D102
         n, _, h, w = x.shape
-        if isinstance(blur_sigma, torch.Tensor) and blur_sigma.ndim == 1:
+        per_item = isinstance(blur_sigma, (list, tuple)) or (isinstance(blur_sigma, torch.Tensor) and blur_sigma.ndim == 1)
+        if per_item:
             # one degradation per batch item (training)
-            code = torch.stack([self.degradation_code(float(b), float(v)) for b, v in zip(blur_sigma, noise)])
+            sig = blur_sigma.tolist() if isinstance(blur_sigma, torch.Tensor) else list(blur_sigma)
+            nse = noise.tolist() if isinstance(noise, torch.Tensor) else list(noise)
+            code = torch.stack([self.degradation_code(b, float(v)) for b, v in zip(sig, nse)])
         else:
-            code = self.degradation_code(float(blur_sigma), float(noise)).expand(n, -1)
+            b = blur_sigma if isinstance(blur_sigma, str) else float(blur_sigma)
+            code = self.degradation_code(b, float(noise)).expand(n, -1)
         maps = code[:, :, None, None].expand(n, code.shape[1], h, w).to(x.dtype)
         out = self.body(torch.cat([x, maps], dim=1))
         return out + bicubic_upsample(x, self.scale) if self.residual else out
