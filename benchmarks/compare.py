@@ -11,7 +11,9 @@ floating-point predictor, overviews (what ``tiledsm dsm`` exports).
 Per size, in one run on the same machine:
 
 - ``tiledsm compare REF OTHER --out ... --workers W --chunks C --no-progress``
-  as a user runs it (a subprocess measured by :mod:`benchmarks._measure`:
+  (plus ``--scheduler threads`` for the ``threads`` row of ``--schedulers``:
+  W threads of one process instead of a local cluster of W worker
+  processes) as a user runs it (a subprocess measured by :mod:`benchmarks._measure`:
   wall time, peak RSS of the client process and of the largest worker), the
   per-phase seconds from ``metrics.json`` (``timings_s``) and the shift
   found (error in metres against the truth);
@@ -107,12 +109,13 @@ def make_inputs(n: int, run_dir: Path) -> tuple[Path, Path]:
     return paths
 
 
-def run_tiledsm(n: int, ref: Path, other: Path, run_dir: Path, workers: int, chunks: int, timeout: float) -> dict:
+def run_tiledsm(n: int, ref: Path, other: Path, run_dir: Path, workers: int, chunks: int, timeout: float,
+                scheduler: str = "cluster") -> dict:
     out = run_dir / f"tiledsm_{n}"
     shutil.rmtree(out, ignore_errors=True)
     argv = [str(TILEDSM), "compare", str(ref), str(other), "--out", str(out), "--workers", str(workers),
-            "--chunks", str(chunks), "--no-progress"]
-    m = measure(argv, log=run_dir / f"tiledsm_{n}.log", timeout=timeout)
+            "--chunks", str(chunks), "--no-progress", *(["--scheduler", scheduler] if scheduler != "cluster" else [])]
+    m = measure(argv, log=run_dir / f"tiledsm_{n}_{scheduler}.log", timeout=timeout)
     row = {"measurement": m.to_dict()}
     if m.ok:
         metrics = json.loads((out / "metrics.json").read_text())
@@ -162,7 +165,7 @@ def _largest(m: dict) -> float:
 
 
 def format_table(rows: list[dict]) -> str:
-    head = ("| size | tiledsm wall (s) | phases (s) | peak client (MiB) | peak worker (MiB) "
+    head = ("| size | scheduler | tiledsm wall (s) | phases (s) | peak client (MiB) | peak worker (MiB) "
             "| largest vs first size | shift error (m) | xdem wall (s) | xdem fit+apply (s) | xdem peak (MiB) "
             "| xdem shift error (m) | wall tiledsm / xdem | wall tiledsm / xdem fit+apply |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
@@ -171,11 +174,11 @@ def format_table(rows: list[dict]) -> str:
         t, x = r["tiledsm"], r.get("xdem") or {}
         tm = t["measurement"]
         if "timings_s" not in t:
-            lines.append(f"| {r['size']}² | failed (rc {tm['returncode']}) |" + " |" * 12)
+            lines.append(f"| {r['size']}² | {r.get('scheduler', 'cluster')} | failed (rc {tm['returncode']}) |" + " |" * 12)
             continue
         ts = t["timings_s"]
         phases = ", ".join(f"{k} {v:.1f}" for k, v in ts.items() if k != "total")
-        cells = [f"{r['size']}²", f"{tm['wall_s']:.1f}", phases, f"{tm['peak_root_rss_mib']:.0f}", f"{tm['peak_descendant_rss_mib']:.0f}",
+        cells = [f"{r['size']}²", r.get("scheduler", "cluster"), f"{tm['wall_s']:.1f}", phases, f"{tm['peak_root_rss_mib']:.0f}", f"{tm['peak_descendant_rss_mib']:.0f}",
                  f"{_largest(tm) / first:.2f}", f"{t['shift_error_m']:.4f}"]
         if "fit_apply_s" in x:
             xm = x["measurement"]
@@ -194,6 +197,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[2048, 8192])
     ap.add_argument("--chunks", type=int, default=1024)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--schedulers", nargs="+", default=["cluster"], choices=["cluster", "threads"],
+                    help="tiledsm's: 'cluster' (a local cluster of --workers processes, the default) and/or "
+                         "'threads' (--scheduler threads); each is a row, run alternately with xdem")
     ap.add_argument("--run-dir", default="/tmp/tiledsm_bench_compare", help="inputs (kept) and outputs (removed)")
     ap.add_argument("--xdem-python", default=str(XDEM_PYTHON), help="python of a venv holding xdem 0.2.3")
     ap.add_argument("--no-xdem", action="store_true")
@@ -218,16 +224,18 @@ def main(argv: list[str] | None = None) -> int:
             xdem_note = "skipped (--no-xdem)" if args.no_xdem else f"skipped (> --xdem-max-size {args.xdem_max_size})"
         elif not xpy.exists():
             xdem_note = f"skipped: {xpy} not found (install xdem==0.2.3 in its own venv)"
-        runs: dict[str, list] = {"tiledsm": [], "xdem": []}
-        for _ in range(args.repeat):  # alternated, so a change of the machine's load hits both tools
-            runs["tiledsm"].append(run_tiledsm(n, ref, other, run_dir, args.workers, args.chunks, args.timeout))
+        runs: dict[str, list] = {**{s: [] for s in args.schedulers}, "xdem": []}
+        for _ in range(args.repeat):  # alternated, so a change of the machine's load hits every tool
+            for sched in args.schedulers:
+                runs[sched].append(run_tiledsm(n, ref, other, run_dir, args.workers, args.chunks, args.timeout, sched))
             if xdem_note is None:
                 runs["xdem"].append(run_xdem(n, ref, other, run_dir, xpy, args.timeout))
-        for tool, done in runs.items():
-            row[tool] = _best(done) if done else {"note": xdem_note}
-            row[f"{tool}_walls_s"] = [round(r["measurement"]["wall_s"], 2) for r in done]
-        rows.append(row)
-        print(format_table(rows).splitlines()[-1], flush=True)
+        xdem = _best(runs["xdem"]) if runs["xdem"] else {"note": xdem_note}
+        for sched in args.schedulers:
+            rows.append({**row, "scheduler": sched, "tiledsm": _best(runs[sched]), "xdem": xdem,
+                         "tiledsm_walls_s": [round(r["measurement"]["wall_s"], 2) for r in runs[sched]],
+                         "xdem_walls_s": [round(r["measurement"]["wall_s"], 2) for r in runs["xdem"]]})
+            print(format_table(rows).splitlines()[-1], flush=True)
     table = format_table(rows)
     print(table)
     result = {

@@ -5,8 +5,12 @@ Default: a :class:`distributed.LocalCluster` with one single-threaded worker
 process per core, so numba, OpenCV and torch each use one thread inside a
 task and tasks never oversubscribe the cores. ``scheduler="tcp://host:8786"``
 runs the same graph on an existing cluster (dask-kubernetes, ``dask
-scheduler`` + ``dask worker``). ``scheduler="synchronous"`` runs in the
-calling thread (tests, debugging). ``jobqueue=JobQueueConfig("slurm", ...)``
+scheduler`` + ``dask worker``). ``scheduler="threads"`` runs on ``workers``
+threads of the calling process (dask's threaded scheduler): no worker
+process to start and no block copied between processes, for work whose
+kernels release the GIL (numpy, numba ``nogil``, GDAL), such as ``compare``
+on one machine; no per-worker memory limit is enforced then.
+``scheduler="synchronous"`` runs in the calling thread (tests, debugging). ``jobqueue=JobQueueConfig("slurm", ...)``
 starts the workers as SLURM, PBS or SGE jobs through dask-jobqueue (the
 scheduler runs in the calling process, typically on a login node; jobs are
 submitted adaptively between ``minimum_jobs`` and ``maximum_jobs``), each
@@ -143,7 +147,8 @@ class ClusterConfig:
     Attributes
     ----------
     scheduler : str or None
-        ``None`` for a new local cluster, ``"synchronous"`` for in-thread
+        ``None`` for a new local cluster, ``"threads"`` for ``workers``
+        threads of this process, ``"synchronous"`` for in-thread
         execution, or a scheduler address (``tcp://host:8786``).
     workers : int or None
         Number of local worker processes (default: number of cores).
@@ -223,6 +228,8 @@ def worker_memory_budget(config: ClusterConfig | None) -> int | None:
         return int(parse_bytes(config.memory_limit))
     if config.scheduler == "synchronous":
         return int(psutil.virtual_memory().total)
+    if config.scheduler == "threads":  # threads share the process: a task may have its share
+        return int(psutil.virtual_memory().total / (config.workers or os.cpu_count() or 1))
     if config.scheduler is not None:
         return None
     return int(psutil.virtual_memory().total / (config.workers or os.cpu_count() or 1))
@@ -262,6 +269,11 @@ def _compute_context(config: ClusterConfig) -> Iterator[object | None]:
         with dask.config.set(scheduler="synchronous"):
             yield None
         return
+    if config.scheduler == "threads":
+        single_threaded_libraries()  # one thread per task, as in a worker process
+        with dask.config.set(scheduler="threads", num_workers=config.workers or os.cpu_count() or 1):
+            yield None
+        return
     from distributed import Client, LocalCluster
 
     if config.jobqueue is not None:
@@ -295,7 +307,7 @@ def shared_cluster(config: ClusterConfig = ClusterConfig()) -> Iterator[ClusterC
     """One cluster for a run of several stages: yields a configuration whose
     ``scheduler`` is the address of a local cluster started once (each
     stage's :func:`compute_context` then connects to it instead of starting
-    its own); an explicit scheduler or ``"synchronous"`` is yielded as is."""
+    its own); an explicit scheduler, ``"threads"`` or ``"synchronous"`` is yielded as is."""
     if config.scheduler is not None:
         yield config
         return

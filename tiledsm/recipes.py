@@ -192,7 +192,7 @@ class ClusterSpec(StrictModel):
 
     kind: Literal["local", "address", "slurm", "pbs", "sge"] = "local"
     address: Optional[str] = Field(None, description="kind address: tcp://host:port")
-    scheduler: Optional[str] = Field(None, description="None: local cluster; 'synchronous'; or tcp://host:port")
+    scheduler: Optional[str] = Field(None, description="None: local cluster; 'threads' (workers threads of one process); 'synchronous'; or tcp://host:port")
     workers: Optional[int] = Field(None, ge=1)
     memory_per_worker: Optional[str] = Field(
         None, description="memory of each worker, e.g. 4GiB (kind local/address; batch jobs: jobqueue.memory)")

@@ -275,3 +275,25 @@ def test_cli_compare_reads_zarr_stores(synth, tmp_path, capsys):
     assert main(["compare", str(a), str(b), "--out", str(tmp_path / "o"), "--scheduler", "synchronous", "--chunks", "32"]) == 0
     printed = json.loads(capsys.readouterr().out)
     assert printed["coregistration"]["dx_px"] == pytest.approx(1.0, abs=0.02)
+
+
+def test_compare_on_threads_equals_the_synchronous_run(synth, tmp_path):
+    """``--scheduler threads`` (no worker processes): the same products as the
+    in-thread run, and the work really ran on the threaded scheduler."""
+    import dask
+
+    from tiledsm.cluster import ClusterConfig, compute_context
+
+    ref = synth.to_dataarray(synth.terrain(*synth.centres((96, 96))), "height")
+    other = synth.to_dataarray(synth.terrain(*synth.centres((96, 96), 0.0, 1.0)) + 0.5, "height")
+    params = CompareParams(chunks=32, figures=False, report=False, cog=False)
+    results = {}
+    for scheduler in ("synchronous", "threads"):
+        with compute_context(ClusterConfig(scheduler=scheduler, workers=2, progress=False)):
+            assert dask.base.get_scheduler() is (dask.threaded.get if scheduler == "threads" else dask.local.get_sync)
+            results[scheduler] = compare_dsms(ref, other, tmp_path / scheduler, params)
+    from tiledsm.io import open_product
+
+    a, b = (open_product(results[s].products["dh_zarr"]) for s in ("synchronous", "threads"))
+    np.testing.assert_array_equal(a["dh"].values, b["dh"].values)
+    assert results["threads"].metrics["statistics"] == results["synchronous"].metrics["statistics"]

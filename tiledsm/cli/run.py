@@ -18,7 +18,8 @@ def add_cluster_arguments(p: argparse.ArgumentParser) -> None:
         help="YAML file with a recipe's 'cluster' section (kind: local | address | slurm | pbs | sge, "
         "with 'jobqueue' resources for batch systems); --scheduler and --workers override it",
     )
-    p.add_argument("--scheduler", default=None, help="dask scheduler address (tcp://host:8786) or 'synchronous'; default: a local cluster")
+    p.add_argument("--scheduler", default=None, help="dask scheduler address (tcp://host:8786), 'threads' (--workers threads of this process: "
+                   "no worker processes; suits compare on one machine) or 'synchronous'; default: a local cluster")
     p.add_argument("--workers", type=int, default=None, help="local workers (one single-threaded process each, >= 1); default: one per core")
     p.add_argument(
         "--memory-per-worker", default=None, metavar="SIZE",

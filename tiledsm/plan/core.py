@@ -264,6 +264,8 @@ def describe_cluster(config) -> str:
         return f"local cluster: {n} single-threaded worker processes, memory limit ~{limit / GIB:.1f} GiB each"
     if config.scheduler == "synchronous":
         return "in this process (synchronous scheduler)"
+    if config.scheduler == "threads":
+        return f"in this process: {config.workers or os.cpu_count() or 1} threads (threaded scheduler, no worker processes)"
     return f"existing cluster at {config.scheduler} (not contacted by the plan)"
 
 
