@@ -114,16 +114,22 @@ class SRSpec(StrictModel):
     degrade_sigma: Optional[float] = Field(None, gt=0, description="gaussian kernel sigma, HR px (default scale / 2)")
     lr_noise: float = Field(0.0, ge=0, description="noise added to the LR images, DN (std)")
     bit_depth: int = Field(12, ge=8, le=16, description="sensor bit depth: SR normalisation and PSNR peak")
-    srmd_blur_sigma: Union[Literal["bicubic"], Annotated[float, Field(ge=0)]] = Field(
-        0.3,
-        description="SRMD's blur: a Gaussian sigma in HR px, or 'bicubic' (SRMD trained with the bicubic kernel) "
-                    "(0.3: best PSNR of the shipped SRMD on the held-out "
-                    "camera/coffee images degraded by bicubic x2; the least-squares Gaussian fit of that "
-                    "kernel, 0.8, over-sharpens: -0.6 dB)")
+    srmd_blur_sigma: Union[Literal["bicubic"], Annotated[float, Field(ge=0)], None] = Field(
+        None,
+        description="SRMD's blur: a Gaussian sigma in HR px, or 'bicubic' (the shipped SRMD was trained with the "
+                    "bicubic kernel too); default: the degradation that made the LR pair ('bicubic', or the "
+                    "gaussian's sigma)")
     srmd_noise: float = Field(0.0, ge=0, description="SRMD's noise level, DN (std)")
     chunk: int = Field(256, ge=32, description="SR tile side, LR pixels")
     border: Optional[int] = Field(None, ge=0, description="pixels cropped for PSNR/SSIM (default: scale)")
     device: str = Field("cpu", description="torch device of the SR networks")
+
+    @model_validator(mode="after")
+    def _srmd_told_the_degradation(self):
+        if self.srmd_blur_sigma is None:
+            sigma = "bicubic" if self.degrade == "bicubic" else (self.degrade_sigma or self.scale / 2)
+            object.__setattr__(self, "srmd_blur_sigma", sigma)
+        return self
 
     @field_validator("models")
     @classmethod
