@@ -22,8 +22,8 @@ centres, white noise of ``--noise`` (in units of the crop's maximum; seed
 0). Our SRMD is told that blur and noise (its degradation maps); the other
 networks know only bicubic.
 
-Methods: bicubic; SRCNN, its residual variant, VDSR and our SRMD (``blur_sigma`` 0.3, the best
-setting of the shipped SRMD for this degradation, noise 0); the published
+Methods: bicubic; SRCNN, its residual variant, VDSR and our SRMD (told the
+bicubic kernel: ``blur_sigma="bicubic"``, noise 0); the published
 SRMDNF weights converted by :mod:`tiledsm.sr.ncnn` (``srmd_official``). At
 x4 our networks have x2 weights only and run twice (``scheme`` x2x2); the
 published weights have a native x4 network, and are also run as x2 twice
@@ -89,7 +89,7 @@ def _run(lr: np.ndarray, chain: list[tuple[str, int]], kw: dict) -> np.ndarray:
 def _methods(scale: int) -> list[tuple[str, str, list[tuple[str, int]], dict]]:
     """``(label, scheme, chain of (model, scale), degradation kwargs)``."""
     twice = [(2,)] * (scale // 2) if scale == 4 else None
-    srmd_kw = {"blur_sigma": 0.3, "noise": 0.0}
+    srmd_kw = {"blur_sigma": "bicubic", "noise": 0.0}
     rows = [("bicubic", f"x{scale}", [("bicubic", scale)], {})]
     for name, kw in (("srcnn", {}), ("srcnn_residual", {}), ("vdsr", {}), ("srmd", srmd_kw)):
         chain = [(name, 2)] * 2 if twice else [(name, scale)]

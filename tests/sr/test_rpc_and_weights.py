@@ -43,7 +43,8 @@ def test_shipped_weights_are_small_and_load():
             assert set(model.card["files"]) == {f"srmdnf_x{scale}.param", f"srmdnf_x{scale}.bin"}
             assert (weights_path(name, scale).parent / "LICENSE-srmd_official.txt").exists()
         else:
-            assert weights_path(name, scale).stat().st_size < 2e6
+            # SRMD at the published 12 x 128 is the official network's size
+            assert weights_path(name, scale).stat().st_size < (3.1e6 if name == "srmd" else 2e6)
             assert model.card["steps"] > 0 and model.card["held_out"][:len(HELD_OUT)] == list(HELD_OUT)
             # cards trained since the NEON tiles came list the held-out tile too; none was trained on it
             assert set(model.card["held_out"][len(HELD_OUT):]) <= set(HELD_OUT_FILES)

@@ -491,7 +491,9 @@ def write_weights(model, config: TrainConfig, card: dict) -> Path:
     """Write ``{"name", "params", "state_dict", "card"}`` and a markdown card."""
     out = Path(config.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    state = {k: (v.half() if config.half and v.is_floating_point() else v).clone() for k, v in model.state_dict().items()}
+    # the kernel basis stays float32: the degradation code is a projection on it, not a learned weight
+    state = {k: (v.half() if config.half and v.is_floating_point() and not k.endswith("pca") else v).clone()
+             for k, v in model.state_dict().items()}
     params = {"scale": config.scale, **config.params}
     torch.save({"name": config.model, "params": params, "state_dict": state, "card": json.dumps(card)}, out)
     lines = [
