@@ -166,3 +166,26 @@ def test_train_with_a_share_of_bicubic_patches_scores_both_degradations(tmp_path
     assert "bicubic kernel" in (tmp_path / "srmd_x2.md").read_text()
     with pytest.raises(SRError, match="bicubic_fraction"):
         TrainConfig(model="srcnn", bicubic_fraction=0.5)
+
+
+def test_gain_range_trains_on_darker_patches(tmp_path, monkeypatch):
+    """With ``gain_range`` the network sees patches scaled down by a
+    log-uniform gain: the HR targets of a step are darker than the images."""
+    import tiledsm.sr.train as T
+
+    seen = []
+    real = T.F.mse_loss
+
+    def spy(pred, hr):
+        seen.append(float(hr.max()))
+        return real(pred, hr)
+
+    monkeypatch.setattr(T.F, "mse_loss", spy)
+    base = dict(model="srcnn", scale=2, steps=3, batch=8, patch=16, use_skimage=False, synthetic=1, eval_crop=32)
+    train(TrainConfig(out=str(tmp_path / "a.pt"), **base), log=lambda m: None)
+    plain = list(seen)
+    seen.clear()
+    train(TrainConfig(out=str(tmp_path / "b.pt"), gain_range=(0.04, 0.2), **base), log=lambda m: None)
+    assert min(plain) > 0.5 and max(seen) <= 0.2 * max(plain) + 1e-6
+    with pytest.raises(SRError, match="gain_range"):
+        TrainConfig(gain_range=(0.0, 1.0))

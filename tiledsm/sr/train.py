@@ -104,6 +104,11 @@ class TrainConfig:
         SRMD, ``bicubic`` otherwise).
     blur_range, noise_range : tuple of float
         SRMD degradation families (HR px; normalised noise std).
+    gain_range : tuple of float
+        Each HR patch is multiplied by a gain drawn log-uniformly in this
+        range (default ``(1, 1)``: none), so that a network meets the dark
+        images of 12-16 bit sensors normalised by their bit depth (the s2p
+        pair's values sit below 0.18 of 4095) as well as full-range ones.
     bicubic_fraction : float
         ``blur_noise`` only: share of the patches degraded by the
         antialiased bicubic kernel (then noise) instead of a Gaussian, with
@@ -149,6 +154,7 @@ class TrainConfig:
     blur_range: tuple[float, float] = (0.2, 2.6)
     noise_range: tuple[float, float] = (0.0, 25.0 / 255.0)
     bicubic_fraction: float = 0.0
+    gain_range: tuple[float, float] = (1.0, 1.0)
     centred: bool = True
     half: bool = False
     params: dict = field(default_factory=dict)
@@ -180,6 +186,9 @@ class TrainConfig:
         object.__setattr__(self, "data_dirs", tuple(str(c) for c in self.data_dirs))
         object.__setattr__(self, "blur_range", tuple(float(v) for v in self.blur_range))
         object.__setattr__(self, "noise_range", tuple(float(v) for v in self.noise_range))
+        object.__setattr__(self, "gain_range", tuple(float(v) for v in self.gain_range))
+        if not 0 < self.gain_range[0] <= self.gain_range[1]:
+            raise SRError(f"TrainConfig.gain_range: expected 0 < low <= high, got {self.gain_range}")
 
 
 # ----------------------------------------------------------------- data
@@ -356,10 +365,15 @@ def evaluate(model, scale: int, images: dict[str, np.ndarray] | None = None, deg
 _RUN_ONLY = ("out", "max_seconds", "threads", "checkpoint", "checkpoint_every", "ship", "eval_crop")
 
 
+#: fields added after the first checkpoints were written, and their defaults
+_ADDED_LATER = {"bicubic_fraction": 0.0, "gain_range": (1.0, 1.0)}
+
+
 def _identity(config: TrainConfig) -> str:
     fields = {k: v for k, v in asdict(config).items() if k not in _RUN_ONLY}
-    if not fields["bicubic_fraction"]:
-        del fields["bicubic_fraction"]  # added later: checkpoints written before it stay valid
+    for name, default in _ADDED_LATER.items():  # checkpoints written before them stay valid
+        if fields[name] == default:
+            del fields[name]
     return json.dumps(fields, sort_keys=True, default=str)
 
 
@@ -419,6 +433,9 @@ def train(config: TrainConfig, log=print) -> dict:
     # at least one step per call: a continued run always makes progress
     while step < config.steps and (step == start or time.perf_counter() - t0 < config.max_seconds):
         hr = _sample_patches(images, config.batch, config.patch, rng)
+        if config.gain_range != (1.0, 1.0):
+            lo, hi = np.log(config.gain_range)
+            hr = hr * torch.exp(torch.rand(config.batch, generator=gen) * (hi - lo) + lo)[:, None, None, None]
         if config.degradation == "bicubic":
             lr_img = degrade_bicubic(hr, s)
             pred = model(lr_img)
@@ -507,6 +524,7 @@ def write_weights(model, config: TrainConfig, card: dict) -> Path:
                                             f"{'centred' if config.centred else 'pixel s//2::s'} sampling"
                                             + (f"; {config.bicubic_fraction} of the patches by the bicubic kernel" if config.bicubic_fraction else "") + ")"
                                             if config.degradation == "blur_noise" else " (antialiased bicubic, torch)"),
+        *([f"- brightness: each HR patch times a gain drawn log-uniformly in {config.gain_range}"] if config.gain_range != (1.0, 1.0) else []),
         f"- data ({len(card['data'])} images): " + ", ".join(card["data"]),
         f"- held out (never trained on): {', '.join(HELD_OUT)} (scikit-image), {', '.join(HELD_OUT_FILES)} (any data folder)",
         f"- final training MSE (normalised, last 100 steps): {card['final_loss_mse']:.3e}" if card["final_loss_mse"] is not None else "- final training MSE: none (no step)",
