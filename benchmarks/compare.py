@@ -10,10 +10,11 @@ floating-point predictor, overviews (what ``tiledsm dsm`` exports).
 
 Per size, in one run on the same machine:
 
-- ``tiledsm compare REF OTHER --out ... --workers W --chunks C --no-progress``
-  (plus ``--scheduler threads`` for the ``threads`` row of ``--schedulers``:
-  W threads of one process instead of a local cluster of W worker
-  processes) as a user runs it (a subprocess measured by :mod:`benchmarks._measure`:
+- ``tiledsm compare REF OTHER --out ... --chunks C --no-progress`` with
+  ``--workers W --scheduler threads`` (the ``threads`` row of
+  ``--schedulers``: W threads of one process, compare's default) or
+  ``--cluster FILE`` naming a local cluster of W worker processes (the
+  ``cluster`` row), as a user runs it (a subprocess measured by :mod:`benchmarks._measure`:
   wall time, peak RSS of the client process and of the largest worker), the
   per-phase seconds from ``metrics.json`` (``timings_s``) and the shift
   found (error in metres against the truth);
@@ -113,8 +114,14 @@ def run_tiledsm(n: int, ref: Path, other: Path, run_dir: Path, workers: int, chu
                 scheduler: str = "cluster") -> dict:
     out = run_dir / f"tiledsm_{n}"
     shutil.rmtree(out, ignore_errors=True)
-    argv = [str(TILEDSM), "compare", str(ref), str(other), "--out", str(out), "--workers", str(workers),
-            "--chunks", str(chunks), "--no-progress", *(["--scheduler", scheduler] if scheduler != "cluster" else [])]
+    if scheduler == "cluster":  # a local cluster of worker processes, asked for by a cluster file
+        spec = run_dir / f"local_{workers}.yaml"
+        spec.write_text(f"kind: local\nworkers: {workers}\n")
+        how = ["--cluster", str(spec)]
+    else:
+        how = ["--workers", str(workers), "--scheduler", scheduler]
+    argv = [str(TILEDSM), "compare", str(ref), str(other), "--out", str(out), *how,
+            "--chunks", str(chunks), "--no-progress"]
     m = measure(argv, log=run_dir / f"tiledsm_{n}_{scheduler}.log", timeout=timeout)
     row = {"measurement": m.to_dict()}
     if m.ok:
@@ -197,9 +204,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[2048, 8192])
     ap.add_argument("--chunks", type=int, default=1024)
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--schedulers", nargs="+", default=["cluster"], choices=["cluster", "threads"],
-                    help="tiledsm's: 'cluster' (a local cluster of --workers processes, the default) and/or "
-                         "'threads' (--scheduler threads); each is a row, run alternately with xdem")
+    ap.add_argument("--schedulers", nargs="+", default=["threads"], choices=["cluster", "threads"],
+                    help="tiledsm's: 'threads' (--workers threads of one process, compare's default) and/or "
+                         "'cluster' (a local cluster of --workers processes); each is a row, run alternately with xdem")
     ap.add_argument("--run-dir", default="/tmp/tiledsm_bench_compare", help="inputs (kept) and outputs (removed)")
     ap.add_argument("--xdem-python", default=str(XDEM_PYTHON), help="python of a venv holding xdem 0.2.3")
     ap.add_argument("--no-xdem", action="store_true")

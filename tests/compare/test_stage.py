@@ -297,3 +297,20 @@ def test_compare_on_threads_equals_the_synchronous_run(synth, tmp_path):
     a, b = (open_product(results[s].products["dh_zarr"]) for s in ("synchronous", "threads"))
     np.testing.assert_array_equal(a["dh"].values, b["dh"].values)
     assert results["threads"].metrics["statistics"] == results["synchronous"].metrics["statistics"]
+
+
+def test_cli_compare_runs_on_threads_unless_told_otherwise(synth, tmp_path, capsys):
+    """Without --scheduler or --cluster, compare plans threads of its own
+    process; a cluster file of kind local keeps worker processes."""
+    from tiledsm.cli import main
+    from tiledsm.io import write_zarr
+
+    a = write_zarr(synth.to_dataarray(synth.terrain(*synth.centres((64, 64))), "height").chunk(32), tmp_path / "a.zarr")
+    b = write_zarr(synth.to_dataarray(synth.terrain(*synth.centres((64, 64), 0.0, 1.0)), "height").chunk(32),
+                   tmp_path / "b.zarr")
+    assert main(["compare", str(a), str(b), "--out", str(tmp_path / "o"), "--workers", "2", "--dry-run"]) == 0
+    assert "in this process: 2 threads" in capsys.readouterr().out
+    local = tmp_path / "local.yaml"
+    local.write_text("kind: local\nworkers: 2\n")
+    assert main(["compare", str(a), str(b), "--out", str(tmp_path / "o"), "--cluster", str(local), "--dry-run"]) == 0
+    assert "local cluster: 2 single-threaded worker processes" in capsys.readouterr().out
