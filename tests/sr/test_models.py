@@ -50,7 +50,7 @@ def test_architectures_match_papers():
     assert all(l.pad_mode == "zeros" for l in convs(build("srmd_official", scale=2)))  # as its weights were trained
 
 
-@pytest.mark.parametrize("pad", [1, 2, 4])
+@pytest.mark.parametrize("pad", [1, 2, 4, 5])
 def test_symmetric_pad_is_numpys(pad):
     x = torch.arange(2 * 5 * 7, dtype=torch.float32).reshape(1, 2, 5, 7)
     ref = np.pad(x.numpy(), ((0, 0), (0, 0), (pad, pad), (pad, pad)), mode="symmetric")

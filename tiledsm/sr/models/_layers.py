@@ -44,9 +44,16 @@ def symmetric_pad(x: torch.Tensor, pad: int) -> torch.Tensor:
         raise ValueError(f"symmetric_pad: pad {pad} exceeds the image size {h} x {w}")
     if pad == 1:  # the 3 x 3 layers: one mirrored pixel is the edge pixel repeated (torch's fast path)
         return F.pad(x, (1, 1, 1, 1), mode="replicate")
-    # flipped slices: 2x a reflect pad's time, where gathering by index took 5x
-    x = torch.cat([x[..., :pad, :].flip(-2), x, x[..., h - pad :, :].flip(-2)], dim=-2)
-    return torch.cat([x[..., :pad].flip(-1), x, x[..., w - pad :].flip(-1)], dim=-1)
+    # one allocation, the image copied once, the borders as flipped slices (the columns taken from the
+    # already padded rows, so the corners come with them): a reflect pad's time, where two torch.cat took
+    # 2x and gathering by index 5x
+    out = x.new_empty(*x.shape[:-2], h + 2 * pad, w + 2 * pad)
+    out[..., pad : pad + h, pad : pad + w] = x
+    out[..., :pad, pad : pad + w] = x[..., :pad, :].flip(-2)
+    out[..., pad + h :, pad : pad + w] = x[..., h - pad :, :].flip(-2)
+    out[..., :pad] = out[..., pad : 2 * pad].flip(-1)
+    out[..., pad + w :] = out[..., w : w + pad].flip(-1)
+    return out
 
 
 class PaddedConv2d(nn.Conv2d):
