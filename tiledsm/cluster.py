@@ -228,9 +228,7 @@ def worker_memory_budget(config: ClusterConfig | None) -> int | None:
         return int(parse_bytes(config.memory_limit))
     if config.scheduler == "synchronous":
         return int(psutil.virtual_memory().total)
-    if config.scheduler == "threads":  # threads share the process: a task may have its share
-        return int(psutil.virtual_memory().total / (config.workers or os.cpu_count() or 1))
-    if config.scheduler is not None:
+    if config.scheduler not in (None, "threads"):  # threads share this process: each task its share, as a worker's
         return None
     return int(psutil.virtual_memory().total / (config.workers or os.cpu_count() or 1))
 

@@ -41,14 +41,10 @@ def run(args: argparse.Namespace) -> int:
     from tiledsm.compare import CompareParams, CoregParams, compare_dsms
     from tiledsm.plan import plan_compare
 
-    cluster = cluster_config(args)
-    if args.scheduler is None and getattr(args, "cluster", None) is None:  # a --cluster file (kind: local) keeps processes
-        import dataclasses
-
-        # compare's kernels release the GIL (numpy, numba nogil, GDAL): threads of this process beat a local
-        # cluster of processes, which pays for starting workers and for moving blocks between them
-        # (benchmarks/compare.py --schedulers cluster threads)
-        cluster = dataclasses.replace(cluster, scheduler="threads")
+    # compare's kernels release the GIL (numpy, numba nogil, GDAL): threads of this process beat a local cluster
+    # of processes, which pays for starting workers and for moving blocks between them (benchmarks/compare.py
+    # --schedulers cluster threads); a --cluster file (kind: local) keeps processes
+    cluster = cluster_config(args, default_scheduler="threads")
     plan = plan_compare(args.ref, args.other, args.out, stable_mask=args.stable_mask, chunks=args.chunks,
                         cluster=cluster)
     print_warnings("compare", plan.warnings)

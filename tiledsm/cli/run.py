@@ -53,9 +53,11 @@ def add_plan_arguments(p: argparse.ArgumentParser, large: bool = True) -> None:
         )
 
 
-def cluster_config(args: argparse.Namespace, recipe_cluster=None):
+def cluster_config(args: argparse.Namespace, recipe_cluster=None, default_scheduler: str | None = None):
     """The :class:`~tiledsm.cluster.ClusterConfig` of the options (falling
-    back on a recipe's ``cluster`` section); refuses ``--workers`` < 1."""
+    back on a recipe's ``cluster`` section, then on the command's
+    ``default_scheduler``: ``None`` for a local cluster); refuses
+    ``--workers`` < 1."""
     import dataclasses
 
     from tiledsm.cluster import ClusterConfig
@@ -84,7 +86,7 @@ def cluster_config(args: argparse.Namespace, recipe_cluster=None):
         )
     base = recipe_cluster.config(progress) if recipe_cluster is not None else ClusterConfig(progress=progress)
     return ClusterConfig(
-        scheduler=args.scheduler or base.scheduler,
+        scheduler=args.scheduler or base.scheduler or (default_scheduler if recipe_cluster is None else None),
         workers=args.workers if args.workers is not None else base.workers,
         memory_limit=memory or base.memory_limit,
         progress=progress,

@@ -34,7 +34,7 @@ import xarray as xr
 from torch import nn
 
 from tiledsm.sr.models.base import SRModel
-from tiledsm.sr.models.srmd import BICUBIC
+from tiledsm.sr.models.srmd import check_blur
 from tiledsm.sr.registry import SRError, load_pretrained
 
 __all__ = ["sr_array", "super_resolve", "resolve_model", "value_scale_for", "BIT_DEPTHS"]
@@ -61,14 +61,12 @@ def _degradation_kwargs(model: SRModel, blur_sigma: float | None, noise: float |
         return {}
     if blur_sigma is None:
         raise SRError(f"{type(model).__name__} needs blur_sigma (Gaussian sigma of the LR blur, HR pixels, or 'bicubic')")
-    if isinstance(blur_sigma, str):
-        if blur_sigma != BICUBIC:
-            raise SRError(f"blur_sigma must be a sigma in HR pixels or {BICUBIC!r}, got {blur_sigma!r}")
-    elif blur_sigma < 0:
-        raise SRError(f"blur_sigma must be >= 0, got {blur_sigma}")
+    try:
+        blur = check_blur(blur_sigma)
+    except ValueError as exc:
+        raise SRError(str(exc)) from None
     if noise is not None and noise < 0:
         raise SRError(f"noise must be >= 0, got {noise}")
-    blur = blur_sigma if isinstance(blur_sigma, str) else float(blur_sigma)
     return {"blur_sigma": blur, "noise": float(noise or 0.0) / value_scale}
 
 
@@ -288,7 +286,7 @@ def super_resolve(
     if getattr(net, "weights_file", None):
         attrs["sr_weights"] = net.weights_file.rsplit("/", 1)[-1]
     if net.takes_degradation:
-        attrs.update(sr_blur_sigma=blur_sigma if isinstance(blur_sigma, str) else float(blur_sigma), sr_noise=float(noise or 0.0))
+        attrs.update(sr_blur_sigma=check_blur(blur_sigma), sr_noise=float(noise or 0.0))
     result = xr.DataArray(out, dims=scene.dims, coords=coords, attrs=attrs, name=scene.name)
     return _scaled_georeference(scene, result, scale)
 

@@ -504,6 +504,10 @@ def train(config: TrainConfig, log=print) -> dict:
     return card
 
 
+def _psnr_rows(scores: dict[str, dict[str, float]]) -> list[str]:
+    return [f"| {name} | {r['model']:.2f} | {r['bicubic']:.2f} | {r['model'] - r['bicubic']:+.2f} |" for name, r in scores.items()]
+
+
 def write_weights(model, config: TrainConfig, card: dict) -> Path:
     """Write ``{"name", "params", "state_dict", "card"}`` and a markdown card."""
     out = Path(config.out)
@@ -534,14 +538,12 @@ def write_weights(model, config: TrainConfig, card: dict) -> Path:
         "| image | model | bicubic | gain |",
         "|---|---|---|---|",
     ]
-    for name, r in card["heldout_psnr_db"].items():
-        lines.append(f"| {name} | {r['model']:.2f} | {r['bicubic']:.2f} | {r['model'] - r['bicubic']:+.2f} |")
+    lines += _psnr_rows(card["heldout_psnr_db"])
     if "heldout_psnr_bicubic_lr_db" in card:
         lines += ["", f"The same images degraded by the bicubic kernel alone (a share of {config.bicubic_fraction} of the "
                   "training patches), the model told `blur_sigma=\"bicubic\"`:", "",
                   "| image | model | bicubic | gain |", "|---|---|---|---|"]
-        for name, r in card["heldout_psnr_bicubic_lr_db"].items():
-            lines.append(f"| {name} | {r['model']:.2f} | {r['bicubic']:.2f} | {r['model'] - r['bicubic']:+.2f} |")
+        lines += _psnr_rows(card["heldout_psnr_bicubic_lr_db"])
     if card.get("note"):
         lines += ["", card["note"]]
     out.with_suffix(".md").write_text("\n".join(lines) + "\n")

@@ -22,7 +22,7 @@ from torch import nn
 from tiledsm.sr.models._layers import BICUBIC_RADIUS, PaddedConv2d, bicubic_upsample, conv_radius
 from tiledsm.sr.models.base import SRModel
 
-__all__ = ["SRMD", "gaussian_kernel", "bicubic_kernel", "kernel_pca_basis", "KERNEL_SIZE", "BICUBIC"]
+__all__ = ["SRMD", "gaussian_kernel", "bicubic_kernel", "blur_kernel", "check_blur", "kernel_pca_basis", "KERNEL_SIZE", "BICUBIC"]
 
 #: side of the blur kernels (HR pixels)
 KERNEL_SIZE = 15
@@ -66,14 +66,23 @@ def bicubic_kernel(scale: int, size: int = KERNEL_SIZE) -> np.ndarray:
     return k / k.sum()
 
 
+def check_blur(blur_sigma: float | str) -> float | str:
+    """``blur_sigma`` as SRMD takes it: :data:`BICUBIC`, or a sigma >= 0 in HR
+    px (float). Raises ``ValueError`` naming what it got."""
+    if isinstance(blur_sigma, str):
+        if blur_sigma != BICUBIC:
+            raise ValueError(f"blur_sigma must be a sigma in HR pixels or {BICUBIC!r}, got {blur_sigma!r}")
+        return blur_sigma
+    if not float(blur_sigma) >= 0:
+        raise ValueError(f"blur_sigma must be >= 0, got {blur_sigma}")
+    return float(blur_sigma)
+
+
 def blur_kernel(blur_sigma: float | str, scale: int) -> np.ndarray:
     """The kernel a ``blur_sigma`` names: :func:`bicubic_kernel` for
     :data:`BICUBIC`, else an isotropic Gaussian of that sigma (HR px)."""
-    if isinstance(blur_sigma, str):
-        if blur_sigma != BICUBIC:
-            raise ValueError(f"SRMD: blur_sigma must be a sigma in HR px or {BICUBIC!r}, got {blur_sigma!r}")
-        return bicubic_kernel(scale)
-    return gaussian_kernel(float(blur_sigma))
+    blur = check_blur(blur_sigma)
+    return bicubic_kernel(scale) if blur == BICUBIC else gaussian_kernel(blur)
 
 
 @functools.lru_cache(maxsize=8)
@@ -174,8 +183,7 @@ class SRMD(SRModel):
             nse = noise.tolist() if isinstance(noise, torch.Tensor) else list(noise)
             code = torch.stack([self.degradation_code(b, float(v)) for b, v in zip(sig, nse)])
         else:
-            b = blur_sigma if isinstance(blur_sigma, str) else float(blur_sigma)
-            code = self.degradation_code(b, float(noise)).expand(n, -1)
+            code = self.degradation_code(check_blur(blur_sigma), float(noise)).expand(n, -1)
         maps = code[:, :, None, None].expand(n, code.shape[1], h, w).to(x.dtype)
         out = self.body(torch.cat([x, maps], dim=1))
         return out + bicubic_upsample(x, self.scale) if self.residual else out
