@@ -59,9 +59,10 @@ def bicubic_kernel(scale: int, size: int = KERNEL_SIZE) -> np.ndarray:
     shape, the one its degradation code describes. Its negative lobes are
     what a Gaussian cannot describe.
     """
-    t = np.abs(np.arange(size) - size // 2) / float(scale)
-    a = -0.5
-    w = np.where(t <= 1, (a + 2) * t**3 - (a + 3) * t**2 + 1, np.where(t < 2, a * t**3 - 5 * a * t**2 + 8 * a * t - 4 * a, 0.0))
+    from tiledsm.synth.degrade import KERNELS  # the same Keys kernel that makes the sr_dsm LR pairs
+
+    cubic, _ = KERNELS["bicubic"](scale, None)
+    w = cubic(np.arange(size, dtype=float) - size // 2)
     k = np.outer(w, w)
     return k / k.sum()
 
