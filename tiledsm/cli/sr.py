@@ -40,6 +40,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    help="SRMD: Gaussian blur sigma of the LR image, HR pixels, or 'bicubic' (LR made by bicubic downsampling)")
     p.add_argument("--noise", type=float, default=None, help="SRMD: noise standard deviation, digital numbers")
     p.add_argument("--bit-depth", type=int, default=None, help="sensor bit depth (default: smallest of 8/10/11/12/14/16 covering the data)")
+    p.add_argument("--normalisation", default="stretch", choices=["stretch", "full_scale"],
+                   help="value mapped to 1 before the network: the image's 99.9th percentile (default; the networks "
+                        "were trained on full-range images) or the full scale 2**bit-depth - 1")
     p.add_argument("--chunk", type=int, default=512, help="tile side, input pixels")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="torch device (cuda only when available)")
     add_cluster_arguments(p)
@@ -78,7 +81,7 @@ def run_sr(args: argparse.Namespace) -> int:
             raise SRError("--device cuda: no CUDA device is available (use --device cpu)")
     plan = plan_sr(args.input, args.output, model=args.model, scale=args.scale, weights=args.weights,
                    chunk=args.chunk, cluster=cluster, device=args.device, blur_sigma=args.blur_sigma,
-                   noise=args.noise, bit_depth=args.bit_depth)
+                   noise=args.noise, bit_depth=args.bit_depth, normalisation=args.normalisation)
     print_warnings("sr", plan.warnings)
     if args.dry_run:
         print(plan.summary())

@@ -5,9 +5,16 @@ Conventions
 - Input: a scene ``xr.DataArray`` with dims ``(y, x)`` or ``(band, y, x)``,
   digital numbers (any dtype), NaN for nodata. Each band is super-resolved
   on its own (the networks are single-band).
-- Values are divided by ``value_scale`` (the sensor's full scale,
-  ``2**bit_depth - 1``) before the network and multiplied back after;
-  the output is float32 in the input's units.
+- Values are divided by ``value_scale`` before the network and multiplied
+  back after; the output is float32 in the input's units. The default
+  normalisation, ``"stretch"``, takes ``value_scale`` as the scene's
+  99.9th percentile (:func:`stretch_scale`): the networks were trained on
+  images that fill [0, 1], and a 12-bit Pleiades scene divided by its
+  full scale 4095 sits below 0.2, where every shipped network does worse
+  than on the same image stretched (README, "Super-resolution before
+  matching"). ``"full_scale"`` divides by ``2**bit_depth - 1``
+  (:func:`value_scale_for`). The value is one number per scene, computed
+  before tiling, so tiles stay exact.
 - Output pixel ``[i, j]`` covers input area ``[i/s, (i+1)/s) x [j/s,
   (j+1)/s)`` (corner convention, GDAL's), so the output RPC is
   ``rpc.scaled(s)`` and a 1-D coordinate ``c`` with step ``d`` becomes
@@ -16,7 +23,11 @@ Conventions
   and output pixels whose input pixel (nearest neighbour) is NaN are NaN.
   The fill is a constant, so tiling stays exact; valid pixels within the
   model's halo of nodata are influenced by the fill.
-- Tiling: halo = the model's receptive field (``model.halo`` LR pixels),
+- Values outside [0, 1] after normalisation are not clipped away: the
+  network gets the image clipped to [0, 1] and the rest is upsampled
+  bicubically and added (:func:`sr_array`).
+- Tiling: halo = the model's receptive field (``model.halo`` LR pixels,
+  at least the bicubic kernel's 2),
   ``boundary="none"`` so the image edges get the model's own reflect
   padding exactly as in a whole-image call; blocks are trimmed by
   ``scale * halo`` on their inner sides. Result equals
@@ -34,13 +45,21 @@ import xarray as xr
 from torch import nn
 
 from tiledsm.sr.models.base import SRModel
+from tiledsm.sr.models.bicubic import Bicubic
 from tiledsm.sr.models.srmd import check_blur
 from tiledsm.sr.registry import SRError, load_pretrained
 
-__all__ = ["sr_array", "super_resolve", "resolve_model", "value_scale_for", "BIT_DEPTHS"]
+__all__ = [
+    "sr_array", "super_resolve", "resolve_model", "value_scale_for", "stretch_scale", "NORMALISATIONS",
+    "BIT_DEPTHS", "STRETCH_PERCENTILE",
+]
 
 #: bit depths tried (smallest first) when the full scale must be inferred
 BIT_DEPTHS = (8, 10, 11, 12, 14, 16)
+#: percentile of a scene's valid pixels that the "stretch" normalisation maps to 1
+STRETCH_PERCENTILE = 99.9
+#: histogram bins over [0, full scale] for :func:`stretch_scale` (1/16 DN at 12 bit)
+_STRETCH_BINS = 65536
 
 
 def resolve_model(model: str | nn.Module, scale: int, device: str = "cpu") -> SRModel:
@@ -88,7 +107,8 @@ def sr_array(
     model : SRModel
         Network (eval mode) with ``model.scale = s``.
     value_scale : float
-        Full scale used to normalise to [0, 1].
+        Value mapped to 1. The network gets the normalised image clipped
+        to [0, 1]; the part outside is upsampled bicubically and added.
     device : str
         Torch device (``"cpu"``, ``"cuda"``).
     blur_sigma, noise : float, optional
@@ -104,9 +124,18 @@ def sr_array(
     img = np.asarray(image, dtype=np.float32)
     nan = np.isnan(img)
     x = np.where(nan, np.float32(0), img / np.float32(value_scale))
-    t = torch.from_numpy(np.ascontiguousarray(x))[None, None].to(device)
+    # The network sees its training range [0, 1]; what lies outside (the
+    # brightest 0.1 % of a stretched scene) is carried past it by bicubic
+    # interpolation, which is linear, so nothing is clipped away. The
+    # published SRMD loses 0.9 dB on the s2p pair when fed values above 1.
+    inside = np.clip(x, 0, 1)
+    t = torch.from_numpy(np.ascontiguousarray(inside))[None, None].to(device)
     with torch.no_grad():
-        y = model(t, **kwargs)[0, 0].float().cpu().numpy() * np.float32(value_scale)
+        y = model(t, **kwargs)[0, 0].float()
+        if not np.array_equal(inside, x):
+            excess = torch.from_numpy(np.ascontiguousarray(x - inside))[None, None].to(device)
+            y = y + Bicubic(model.scale)(excess)[0, 0].float()
+        y = y.cpu().numpy() * np.float32(value_scale)
     if nan.any():
         s = model.scale
         y[np.repeat(np.repeat(nan, s, axis=0), s, axis=1)] = np.nan
@@ -175,6 +204,40 @@ def value_scale_for(scene: xr.DataArray) -> float:
     return vmax
 
 
+def stretch_scale(scene: xr.DataArray, percentile: float = STRETCH_PERCENTILE) -> float:
+    """The scene value mapped to 1 by the ``"stretch"`` normalisation.
+
+    The ``percentile`` of the valid (non-NaN) pixels in ``[0, full scale]``
+    (full scale from :func:`value_scale_for`), from one streaming histogram
+    of 65536 bins over the scene's chunks (precision: full scale / 65536,
+    the upper edge of the bin that holds the percentile). A percentile
+    rather than the maximum: a few saturated or specular pixels (the
+    ``s2p_pair`` image: maximum 1883 DN, 99.9th percentile 545 DN) would
+    otherwise keep the scene dark. Falls back to the full scale for a scene
+    whose percentile lies in the first bin (e.g. all zero).
+    """
+    if not 0 < percentile <= 100:
+        raise SRError(f"stretch percentile must be in (0, 100], got {percentile}")
+    full = value_scale_for(scene)
+    data = scene.data
+    if not isinstance(data, da.Array):
+        data = da.from_array(np.asarray(data), chunks=-1)
+    data = data.astype(np.float32)
+    counts, edges = da.histogram(da.where(da.isnan(data), -1, data), bins=_STRETCH_BINS, range=(0.0, full))
+    counts = np.asarray(counts.compute(), np.int64)
+    total = int(counts.sum())
+    if total == 0:
+        return full
+    k = int(np.searchsorted(np.cumsum(counts), percentile / 100.0 * total))
+    if k == 0:  # (almost) nothing above zero: nothing to stretch
+        return full
+    return float(edges[min(k + 1, _STRETCH_BINS)])
+
+
+#: how digital numbers are brought to the [0, 1] range the networks were trained on: name -> value_scale(scene)
+NORMALISATIONS = {"stretch": stretch_scale, "full_scale": value_scale_for}
+
+
 def _scaled_coord(c: np.ndarray, n_out: int, s: int) -> np.ndarray | None:
     c = np.asarray(c)
     if c.ndim != 1 or c.size < 2 or not np.issubdtype(c.dtype, np.number):
@@ -192,6 +255,7 @@ def super_resolve(
     blur_sigma: float | str | None = None,
     noise: float | None = None,
     value_scale: float | None = None,
+    normalisation: str = "stretch",
     chunks: int | None = None,
 ) -> xr.DataArray:
     """Super-resolve a scene tile by tile (lazy).
@@ -216,7 +280,12 @@ def super_resolve(
     noise : float, optional
         SRMD: noise standard deviation, digital numbers.
     value_scale : float, optional
-        Full scale for normalisation (default: :func:`value_scale_for`).
+        Scene value mapped to 1 before the network (replaces
+        ``normalisation``).
+    normalisation : {"stretch", "full_scale"}
+        How ``value_scale`` is found when not given (:data:`NORMALISATIONS`):
+        the scene's 99.9th percentile (default) or its full scale
+        ``2**bit_depth - 1``.
     chunks : int, optional
         Rechunk the image axes to this size first (default: keep the
         scene's chunks; a numpy-backed scene becomes one chunk).
@@ -227,16 +296,21 @@ def super_resolve(
         float32, ``scale`` times larger on ``y``/``x``, chunks scaled by
         ``scale``. ``attrs``: the scene's, with ``rpc`` replaced by
         ``RPC.scaled(scale)`` and ``sr_model``, ``sr_scale``,
-        ``sr_value_scale`` (and ``sr_weights``, ``sr_blur_sigma``,
+        ``sr_value_scale``, ``sr_normalisation`` (and ``sr_weights``, ``sr_blur_sigma``,
         ``sr_noise`` when relevant) added.
     """
     if scene.ndim not in (2, 3):
         raise SRError(f"super_resolve: scene must have dims (y, x) or (band, y, x), got {scene.dims}")
     net = resolve_model(model, scale, device)
-    vscale = float(value_scale) if value_scale is not None else value_scale_for(scene)
+    if normalisation not in NORMALISATIONS:
+        raise SRError(f"normalisation must be one of {sorted(NORMALISATIONS)}, got {normalisation!r}")
+    if value_scale is not None:
+        vscale, normalisation = float(value_scale), "given"
+    else:
+        vscale = NORMALISATIONS[normalisation](scene)
     degradation = {"blur_sigma": blur_sigma, "noise": noise}
     _degradation_kwargs(net, blur_sigma, noise, vscale)  # validate early
-    halo = net.halo
+    halo = max(net.halo, Bicubic(scale).halo)  # the carried excess is interpolated bicubically
     data = scene.data
     if not isinstance(data, da.Array):
         data = da.from_array(np.asarray(data), chunks=-1)
@@ -282,7 +356,8 @@ def super_resolve(
 
         attrs["rpc"] = RPC.from_gdal(attrs["rpc"]).scaled(scale).to_gdal()
     model_name = model if isinstance(model, str) else type(net).__name__.lower()
-    attrs.update(sr_model=model_name, sr_scale=int(scale), sr_value_scale=vscale)
+    attrs.update(sr_model=model_name, sr_scale=int(scale), sr_value_scale=vscale,
+                 sr_normalisation=normalisation)
     if getattr(net, "weights_file", None):
         attrs["sr_weights"] = net.weights_file.rsplit("/", 1)[-1]
     if net.takes_degradation:

@@ -113,7 +113,10 @@ class SRSpec(StrictModel):
     degrade: Literal["bicubic", "gaussian"] = Field("bicubic", description="LR kernel (tiledsm.synth.degrade)")
     degrade_sigma: Optional[float] = Field(None, gt=0, description="gaussian kernel sigma, HR px (default scale / 2)")
     lr_noise: float = Field(0.0, ge=0, description="noise added to the LR images, DN (std)")
-    bit_depth: int = Field(12, ge=8, le=16, description="sensor bit depth: SR normalisation and PSNR peak")
+    bit_depth: int = Field(12, ge=8, le=16, description="sensor bit depth: PSNR peak (and SR normalisation if full_scale)")
+    normalisation: Literal["stretch", "full_scale"] = Field(
+        "stretch", description="value mapped to 1 before the SR networks: each LR image's 99.9th percentile "
+                               "(stretch) or 2**bit_depth - 1 (full_scale); tiledsm.sr.infer.NORMALISATIONS")
     srmd_blur_sigma: Union[Literal["bicubic"], Annotated[float, Field(ge=0)], None] = Field(
         None,
         description="SRMD's blur: a Gaussian sigma in HR px, or 'bicubic' (the shipped SRMD was trained with the "
@@ -282,7 +285,8 @@ def _super_resolve_file(lr: Path, out: Path, model: str, sr: SRSpec, cluster: Cl
     net = load_pretrained(model, sr.scale, device=sr.device)
     kw = {"blur_sigma": sr.srmd_blur_sigma, "noise": sr.srmd_noise} if net.takes_degradation else {}
     scene = open_scene(lr, chunks=sr.chunk)
-    hr = super_resolve(scene, net, sr.scale, device=sr.device, value_scale=float(2**sr.bit_depth - 1), **kw)
+    scene.attrs["bit_depth"] = sr.bit_depth
+    hr = super_resolve(scene, net, sr.scale, device=sr.device, normalisation=sr.normalisation, **kw)
     tags = {k: v for k, v in hr.attrs.items() if k.startswith("sr_")}
     tags["sr_model"] = model
     with compute_context(cluster):
