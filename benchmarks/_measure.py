@@ -33,7 +33,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Mapping, Sequence
 
-__all__ = ["Measurement", "measure", "tree_memory"]
+__all__ = ["Measurement", "measure", "tree_memory", "scheduler_args"]
 
 _MIB = 2.0**20
 _PAGE = os.sysconf("SC_PAGE_SIZE")
@@ -342,3 +342,15 @@ def run_tiledsm(*args: str) -> float:
         raise SystemExit(f"tiledsm {' '.join(args)} failed:\n{r.stderr[-3000:]}")
     return time.perf_counter() - t0
 
+
+
+def scheduler_args(scheduler: str, workers: int, run_dir: Path) -> list[str]:
+    """Options that make a tiledsm command run on ``scheduler``: ``"cluster"``,
+    a local cluster of ``workers`` processes asked for by a cluster file
+    written into ``run_dir`` (as a user asks for one); otherwise
+    ``--workers W --scheduler NAME`` (e.g. ``threads``)."""
+    if scheduler == "cluster":
+        spec = Path(run_dir) / f"local_{workers}.yaml"
+        spec.write_text(f"kind: local\nworkers: {workers}\n")
+        return ["--cluster", str(spec)]
+    return ["--workers", str(workers), "--scheduler", scheduler]

@@ -53,7 +53,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from benchmarks._measure import measure  # noqa: E402
+from benchmarks._measure import measure, scheduler_args  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 TILEDSM = Path(sys.executable).parent / "tiledsm"
@@ -114,12 +114,7 @@ def run_tiledsm(n: int, ref: Path, other: Path, run_dir: Path, workers: int, chu
                 scheduler: str = "cluster") -> dict:
     out = run_dir / f"tiledsm_{n}"
     shutil.rmtree(out, ignore_errors=True)
-    if scheduler == "cluster":  # a local cluster of worker processes, asked for by a cluster file
-        spec = run_dir / f"local_{workers}.yaml"
-        spec.write_text(f"kind: local\nworkers: {workers}\n")
-        how = ["--cluster", str(spec)]
-    else:
-        how = ["--workers", str(workers), "--scheduler", scheduler]
+    how = scheduler_args(scheduler, workers, run_dir)
     argv = [str(TILEDSM), "compare", str(ref), str(other), "--out", str(out), *how,
             "--chunks", str(chunks), "--no-progress"]
     m = measure(argv, log=run_dir / f"tiledsm_{n}_{scheduler}.log", timeout=timeout)

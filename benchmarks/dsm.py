@@ -12,13 +12,17 @@ measured by :mod:`benchmarks._measure`):
   ``tiledsm synth`` into the run folder and reused), on its truth grid, scored
   against the truth on visible ground.
 
-For every case and worker count: wall time of the whole command, the DSM
-stage's own matching time (``timings.match_s`` of ``metrics.json``: cluster
-start included), output Mcells per second of matching, peak memory of one
-worker (the largest descendant process), of the client (the command's own
-process: tie points, then the metrics against the reference, in memory) and
-of the whole tree (PSS, shared pages split), and the speed-up of 2 workers
-over 1 measured in the same run; for the synthetic cases of a run, the
+For every case, scheduler (``--schedulers``: ``threads``, W threads of the
+command's own process, the default of ``tiledsm dsm``; ``cluster``, a local
+cluster of W worker processes asked for by a ``--cluster`` file) and worker
+count: wall time of the whole command, the DSM stage's own matching time
+(``timings.match_s`` of ``metrics.json``: cluster start included), output
+Mcells per second of wall time and of matching, peak memory of one worker
+(the largest descendant process; none on threads), of the client (the
+command's own process: tie points, then the metrics against the reference,
+in memory; on threads it runs the tasks too) and of the whole tree (PSS,
+shared pages split), and the speed-up of 2 workers over 1 measured in the
+same run; for the synthetic cases of a run, the
 per-worker peak against the smallest scene's and the client's growth
 against one float32 array of the whole scene (the client must never hold
 one: the script fails if it grows by that much). Load averages before and after each measurement are recorded:
@@ -40,7 +44,7 @@ constant tasks per chunk).
 
 Usage::
 
-    nice -n 10 .venv/bin/python benchmarks/dsm.py [--cases s2p synth4096] [--workers 1 2] [--graph-sizes 4096 8192 16384]
+    nice -n 10 .venv/bin/python benchmarks/dsm.py [--cases s2p synth4096] [--workers 1 2] [--schedulers threads cluster] [--graph-sizes 4096 8192 16384]
 
 Writes ``benchmarks/results/dsm.json`` and prints a markdown table.
 """
@@ -59,7 +63,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from benchmarks._measure import measure  # noqa: E402
+from benchmarks._measure import measure, scheduler_args  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 DATA = Path(os.environ.get("TILEDSM_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -101,7 +105,7 @@ def planned_worker_mib(argv: list[str]) -> float | None:
 
 
 def run_case(name: str, workers: int, run_dir: Path, chunk: int, timeout: float,
-             bounds: list[float] | None = None) -> dict:
+             bounds: list[float] | None = None, scheduler: str = "threads") -> dict:
     args, info = _case_s2p(run_dir) if name == "s2p" else _case_synth(run_dir, int(name.removeprefix("synth")))
     if bounds:
         if name == "s2p":
@@ -114,13 +118,14 @@ def run_case(name: str, workers: int, run_dir: Path, chunk: int, timeout: float,
         i = args.index("--like")
         args = args[:i] + args[i + 2:] + ["--crs", crs, "--resolution", str(res), "--bounds", *map(str, bounds)]
         info = {**info, "bounds": bounds}
-    out = run_dir / f"{name}_w{workers}"
+    out = run_dir / (f"{name}_w{workers}" if scheduler == "cluster" else f"{name}_w{workers}_{scheduler}")
     shutil.rmtree(out, ignore_errors=True)  # a finished store would be resumed, not recomputed
-    argv = [str(TILEDSM), "dsm", *args, "--out", str(out), "--workers", str(workers), "--chunk", str(chunk), "--no-progress"]
+    how = scheduler_args(scheduler, workers, run_dir)
+    argv = [str(TILEDSM), "dsm", *args, "--out", str(out), *how, "--chunk", str(chunk), "--no-progress"]
     planned = planned_worker_mib(argv)
-    m = measure(argv, log=run_dir / f"{name}_w{workers}.log", timeout=timeout)
-    row = {"case": name, "workers": workers, "chunk": chunk, **info, "planned_worker_mib": planned,
-           "measurement": m.to_dict()}
+    m = measure(argv, log=out.with_suffix(".log"), timeout=timeout)
+    row = {"case": name, "scheduler": scheduler, "workers": workers, "chunk": chunk, **info,
+           "planned_worker_mib": planned, "measurement": m.to_dict()}
     if m.ok:
         metrics = json.loads((out / "metrics.json").read_text())
         ref = metrics.get("vs_reference", {})
@@ -129,6 +134,7 @@ def run_case(name: str, workers: int, run_dir: Path, chunk: int, timeout: float,
             cells=cells,
             match_s=metrics["timings"]["match_s"],
             mcells_per_s=cells / 1e6 / metrics["timings"]["match_s"],
+            mcells_per_s_wall=cells / 1e6 / m.wall_s,
             nmad_m=ref.get("nmad"),
             # where the DSM lies relative to the reference (Nuth & Kaab) and its NMAD moved back onto it
             nmad_coregistered_m=(ref.get("coregistered") or {}).get("nmad"),
@@ -187,27 +193,34 @@ def _offset(r: dict) -> str:
     return "-" if e is None else f"{e:+.3f}, {n:+.3f}"
 
 
+def _scheduler(r: dict) -> str:
+    return r.get("scheduler", "cluster")  # rows written before --schedulers were local clusters
+
+
 def format_table(rows: list[dict]) -> str:
     head = (
-        "| case | workers | cells | wall (s) | match (s) | Mcells/s | speed-up vs 1 | peak per worker (MiB) "
-        "| planned per worker (MiB) | peak / planned | peak client (MiB) | tree PSS (MiB) | NMAD (m) | completeness "
-        "| offset E, N (m) | NMAD co-registered (m) |"
+        "| case | scheduler | workers | cells | wall (s) | match (s) | Mcells/s of wall | Mcells/s of matching "
+        "| speed-up vs 1 | peak per worker (MiB) | planned per worker (MiB) | peak / planned | peak client (MiB) "
+        "| tree PSS (MiB) | NMAD (m) | completeness | offset E, N (m) | NMAD co-registered (m) |"
     )
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
-    base = {r["case"]: r for r in rows if r["workers"] == 1 and "match_s" in r}
+    base = {(r["case"], _scheduler(r)): r for r in rows if r["workers"] == 1 and "match_s" in r}
     for r in rows:
         m = r["measurement"]
         if "match_s" not in r:
-            lines.append(f"| {r['case']} | {r['workers']} | failed (rc {m['returncode']}) ||||||||||||||")
+            lines.append(f"| {r['case']} | {_scheduler(r)} | {r['workers']} | failed (rc {m['returncode']}) |||||||||||||||")
             continue
-        b = base.get(r["case"])
+        b = base.get((r["case"], _scheduler(r)))
         speed = f"{b['match_s'] / r['match_s']:.2f}" if b else "-"
         planned = r.get("planned_worker_mib")
         plan = f"{planned:.0f}" if planned else "-"
-        ratio = f"{m['peak_descendant_rss_mib'] / planned:.2f}" if planned else "-"
+        workers = _scheduler(r) == "cluster"  # threads: no worker process, the client runs the tasks
+        per_worker = f"{m['peak_descendant_rss_mib']:.0f}" if workers else "-"
+        ratio = f"{m['peak_descendant_rss_mib'] / planned:.2f}" if planned and workers else "-"
+        wall_rate = r.get("mcells_per_s_wall", r["cells"] / 1e6 / m["wall_s"])
         lines.append(
-            f"| {r['case']} | {r['workers']} | {r['cells'] / 1e6:.2f} M | {m['wall_s']:.1f} | {r['match_s']:.1f} | "
-            f"{r['mcells_per_s']:.3f} | {speed} | {m['peak_descendant_rss_mib']:.0f} | {plan} | {ratio} | "
+            f"| {r['case']} | {_scheduler(r)} | {r['workers']} | {r['cells'] / 1e6:.2f} M | {m['wall_s']:.1f} | "
+            f"{r['match_s']:.1f} | {wall_rate:.3f} | {r['mcells_per_s']:.3f} | {speed} | {per_worker} | {plan} | {ratio} | "
             f"{m['peak_root_rss_mib']:.0f} | "
             f"{m['peak_pss_mib'] or float('nan'):.0f} | "
             f"{r['nmad_m']:.3f} | {r['completeness']:.3f} | {_offset(r)} | {_num(r.get('nmad_coregistered_m'))} |"
@@ -222,6 +235,7 @@ def scaling_rows(rows: list[dict]) -> list[dict]:
     smallest scene against one float32 array of the whole scene (the
     client must never hold one: ``holds_scene`` is then False)."""
     out = []
+    rows = [r for r in rows if _scheduler(r) == "cluster"]  # per-worker peaks need worker processes
     for w in sorted({r["workers"] for r in rows}):
         synth = sorted((r for r in rows if r["workers"] == w and r["case"].startswith("synth") and "match_s" in r),
                        key=lambda r: r["cells"])
@@ -260,6 +274,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cases", nargs="*", default=["s2p", "synth4096"], help="s2p and/or synth<N> (none: graph only)")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--schedulers", nargs="+", default=["threads"], choices=["threads", "cluster"],
+                    help="threads: --workers threads of the command's process (tiledsm dsm's default); cluster: a "
+                         "local cluster of --workers processes (a --cluster file); each is a row")
     ap.add_argument("--chunk", type=int, default=512)
     ap.add_argument("--bounds", type=float, nargs=4, metavar=("XMIN", "YMIN", "XMAX", "YMAX"),
                     help="synthetic cases: run on this part of the truth grid only (see above)")
@@ -273,8 +290,9 @@ def main(argv: list[str] | None = None) -> int:
     run_dir.mkdir(parents=True, exist_ok=True)
     rows = []
     for case in args.cases:
-        for w in args.workers:
-            rows.append(run_case(case, w, run_dir, args.chunk, args.timeout, args.bounds))
+        for sched in args.schedulers:
+            for w in args.workers:
+                rows.append(run_case(case, w, run_dir, args.chunk, args.timeout, args.bounds, sched))
             print(format_table(rows[-1:]).splitlines()[-1], flush=True)
     table = format_table(rows)
     print(table)

@@ -142,6 +142,38 @@ def test_distributed_cluster_matches_local(scene, scene_dsms, tmp_path):
     np.testing.assert_array_equal(remote["height"].values, scene_dsms[1024]["height"].values)
 
 
+def test_threads_give_the_synchronous_dsm(scene, scene_dsms, tmp_path):
+    """``tiledsm dsm``'s default scheduler, W threads of the calling process:
+    the identical DSM (bit for bit) as the in-thread run, computed on the
+    threaded scheduler."""
+    import dask
+
+    from tiledsm.cluster import compute_context
+
+    grid = grid_like(scene.truth_dsm, chunk=256)
+    ds, _ = dsm_from_pair(*scene.views, grid=grid, params=DSMParams(chunk=256))
+    threads = ClusterConfig(scheduler="threads", workers=2, progress=False)
+    with compute_context(threads):
+        assert dask.base.get_scheduler() is dask.threaded.get
+    got = _compute(ds, tmp_path / "threads", threads)
+    np.testing.assert_array_equal(got["height"].values, scene_dsms[256]["height"].values)
+    np.testing.assert_array_equal(got["confidence"].values, scene_dsms[256]["confidence"].values)
+
+
+def test_cli_dsm_runs_on_threads_unless_told_otherwise(scene, tmp_path, capsys):
+    """Without --scheduler or --cluster, ``tiledsm dsm`` plans threads of its
+    own process; a cluster file of kind local keeps worker processes."""
+    from tiledsm.cli import main
+
+    args = ["dsm", *map(str, scene.views), "--like", str(scene.truth_dsm), "--out", str(tmp_path / "o")]
+    assert main([*args, "--workers", "2", "--dry-run"]) == 0
+    assert "in this process: 2 threads" in capsys.readouterr().out
+    local = tmp_path / "local.yaml"
+    local.write_text("kind: local\nworkers: 2\n")
+    assert main([*args, "--cluster", str(local), "--dry-run"]) == 0
+    assert "local cluster: 2 single-threaded worker processes" in capsys.readouterr().out
+
+
 def test_views_without_overlap(shared_data, tmp_path):
     a = shared_data("rpc_models", "shareloc", "wv3_20.NTF")
     b = shared_data("rpc_models", "shareloc", "wv3_30.NTF")

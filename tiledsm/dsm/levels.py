@@ -139,9 +139,13 @@ def match_cells(
         if not np.isfinite(lo).any():
             return out
         band = (float(np.nanmin(lo)), float(np.nanmax(hi)))
-        # cells the coarser level gives nothing to search still get a
-        # deterministic surface: their samples enter neighbours' windows
-        h_ref = np.where(np.isfinite(h_ref), h_ref, np.float32(np.mean(h_range)))
+        if params.search.relative_labels:
+            # cells the coarser level gives nothing to search still get a
+            # deterministic surface: their samples enter neighbours' windows
+            h_ref = np.where(np.isfinite(h_ref), h_ref, np.float32(np.mean(h_range)))
+        else:
+            # the scene-wide lattice: one constant for every block, so chunks agree
+            h_ref = np.full(h_ref.shape, np.float32(np.mean(h_range)), np.float32)
     f = geom.factor
     images, rpcs, windows = [], [], []
     for v in views:

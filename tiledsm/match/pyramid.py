@@ -50,12 +50,25 @@ class SearchParams:
     hole_factor : float
         The band is ``hole_factor`` times wider where the coarser cell
         itself had no height.
+    relative_labels : bool
+        Candidate heights of the finer level on the lattice ``h_ref + k *
+        step`` (labels relative to the reference surface, so semi-global
+        penalties count steps away from a surface parallel to ``h_ref``)
+        instead of the scene-wide lattice ``k * step`` (absolute labels,
+        penalties count height changes, as at a single level). The band
+        is the same. Absolute is the default: measured on ``s2p_pair`` at
+        2 levels (s2p's grid, against its DSM), relative labels gave NMAD
+        0.317 m (0.306 with ``smooth`` 3), absolute 0.303 m, the single
+        level's; on the synthetic 4096² scene (2 levels, against the
+        truth) 0.319 m relative, 0.304 m absolute. The smoothed coarse
+        surface then pulls the finer DSM towards it.
     """
 
     smooth: float = 1.0
     fill_sigma: float = 4.0
     truncate: float = 3.0
     hole_factor: float = 3.0
+    relative_labels: bool = False
 
     def __post_init__(self) -> None:
         if self.smooth <= 0 or self.fill_sigma < self.smooth or self.truncate <= 0 or self.hole_factor < 1:
