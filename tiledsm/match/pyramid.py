@@ -49,7 +49,10 @@ class SearchParams:
         Both Gaussians are cut at ``truncate * sigma`` (the halo depth).
     hole_factor : float
         The band is ``hole_factor`` times wider where the coarser cell
-        itself had no height.
+        itself had no height. On ``s2p_pair`` (full overlap, bands of 3
+        steps) 4 instead of 3 took the cells off by more than 10 m from
+        0.0095 to 0.0082 % at equal completeness (95.8 %); narrower (2, 1.5
+        with bands of 4 steps) let more in (0.0119, 0.0130 %).
     relative_labels : bool
         Candidate heights of the finer level on the lattice ``h_ref + k *
         step`` (labels relative to the reference surface, so semi-global
@@ -67,7 +70,7 @@ class SearchParams:
     smooth: float = 1.0
     fill_sigma: float = 4.0
     truncate: float = 3.0
-    hole_factor: float = 3.0
+    hole_factor: float = 4.0
     relative_labels: bool = False
 
     def __post_init__(self) -> None:
