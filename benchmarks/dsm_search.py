@@ -9,8 +9,8 @@ cells with a height). The variants:
 - ``levels=1``: one full-resolution sweep over the whole height range (134 candidates);
 - ``levels=2`` with *relative* labels (``SearchParams.relative_labels``: candidates ``h_ref + k
   step`` around the smoothed coarse DSM), with the coarse smoothing ``smooth`` 1 and 3 cells;
-- ``levels=2`` with *absolute* labels (the scene-wide lattice ``k step``), band ``refine_steps`` 4
-  and 3 (the default).
+- ``levels=2`` with *absolute* labels (the scene-wide lattice ``k step``; not chunk invariant yet,
+  see :class:`tiledsm.match.pyramid.SearchParams`), band ``refine_steps`` 4 and 3.
 
 Usage::
 
@@ -40,12 +40,13 @@ def _variants():
 
     return [
         ("1 level", {"levels": 1}),
-        ("2 levels, relative labels, smooth 1", {"levels": 2, "refine_steps": 4,
-                                                 "search": SearchParams(relative_labels=True)}),
+        ("2 levels, relative labels, smooth 1 (the default)", {"levels": 2, "refine_steps": 4}),
         ("2 levels, relative labels, smooth 3", {"levels": 2, "refine_steps": 4,
                                                  "search": SearchParams(relative_labels=True, smooth=3.0)}),
-        ("2 levels, absolute labels, band 4 steps", {"levels": 2, "refine_steps": 4}),
-        ("2 levels, absolute labels, band 3 steps (default)", {"levels": 2, "refine_steps": 3}),
+        ("2 levels, absolute labels, band 4 steps", {"levels": 2, "refine_steps": 4,
+                                                     "search": SearchParams(relative_labels=False)}),
+        ("2 levels, absolute labels, band 3 steps", {"levels": 2, "refine_steps": 3,
+                                                     "search": SearchParams(relative_labels=False)}),
     ]
 
 

@@ -607,8 +607,7 @@ def test_plan_levels_match_the_built_graph(scene):
 
 def test_plan_task_sizes_and_candidates(scene):
     """Largest task = chunk plus halo (clipped at the grid's edges);
-    candidates: the whole range at the coarsest level, the band below (19:
-    3 steps on each side, 3 times wider under a coarse hole)."""
+    candidates: the whole range at the coarsest level, the band (25) below."""
     from tiledsm.plan import plan_recipe
     from tiledsm.workflows.dsm import DSMRecipe
 
@@ -621,4 +620,4 @@ def test_plan_task_sizes_and_candidates(scene):
     # chunks [90, 166] on each axis (the last 76 cells merged): the second one plus a 64-cell halo on one side
     assert fine.task_cells == (166 + 64, 166 + 64) and fine.chunks == 4
     assert coarse.candidates == int(np.ceil(50 / coarse.step - 1e-9)) + 1
-    assert fine.candidates == 19
+    assert fine.candidates == 25

@@ -148,7 +148,9 @@ def test_search_from_coarse_values():
     href, lo, hi = _search_whole(coarse, d, 2.0, (0.0, 100.0), p)
     assert href.shape == (80, 80)
     assert href[4, 4] == pytest.approx(50.0) and lo[4, 4] == pytest.approx(48.0) and hi[4, 4] == pytest.approx(52.0)
-    assert lo[21, 21] == pytest.approx(44.0) and hi[21, 21] == pytest.approx(56.0)  # coarse cell (10, 10)
+    wide = p.hole_factor * 2.0
+    assert lo[21, 21] == pytest.approx(50.0 - wide) and hi[21, 21] == pytest.approx(50.0 + wide)  # coarse cell (10, 10)
+    assert p.hole_factor > 1  # so the hole's band really is wider
     assert np.isnan(href[79, 79]) and np.isnan(lo[79, 79])
     # a slope is reproduced by the bilinear interpolation away from holes
     ramp = np.add.outer(np.arange(40.0), np.zeros(40))

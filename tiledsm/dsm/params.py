@@ -26,18 +26,11 @@ class DSMParams:
         Pyramid levels (1 = full resolution only). ``None`` chooses: one
         level while the full-resolution sweep needs at most
         ``max_candidates`` heights, and one more level for each doubling
-        beyond.
+        beyond (measured on synthetic truth, a coarse level costs
+        completeness next to buildings, so it is used only when the search
+        is wide).
     max_candidates : int
-        See ``levels``. 128 (was 192): ``s2p_pair`` (134 candidates) now
-        takes 2 levels and, with absolute labels and ``refine_steps`` 3,
-        matches in 5.5 s instead of 8.7 s (2 worker processes), NMAD 0.302
-        m either way, cells off by > 10 m 0.0082 % (full overlap),
-        completeness 95.6 % (95.1). Not 96: the 4096² synthetic scene then
-        takes 3 levels (45.8 s instead of 64.4 s on 2 threads, same
-        accuracy), but the 768 px demo scene (126 candidates) takes 2 and
-        loses 1.9 points of completeness on visible ground (97.2 -> 95.3
-        %): a coarse level smears its building edges (README, "The DSM
-        stage").
+        See ``levels``.
     height_range : (float, float) or None
         Scene height range (ellipsoidal metres); ``None`` estimates it from
         tie points.
@@ -45,15 +38,7 @@ class DSMParams:
         Metres added on both sides of the tie-point height range.
     refine_steps : int
         Height steps searched on each side of the upsampled coarser DSM at
-        the finer levels (``SearchParams.hole_factor`` times more under a
-        coarse hole). On ``s2p_pair`` at 2 levels (full overlap, against
-        s2p's DSM, ``hole_factor`` 3): 3 / 4 / 6 steps gave cells off by >
-        10 m 0.0095 / 0.0103 / 0.0145 %, RMSE 0.445 / 0.464 / 0.482 m, NMAD
-        0.294 / 0.295 / 0.295 m, completeness 95.8 / 96.1 / 96.2 %: a wider
-        band lets more mismatches in next to holes (4 steps with
-        ``hole_factor`` 4: still 0.0103 %). It costs completeness on the
-        synthetic scenes' building edges: 4096², 2 levels, 84.9 % with 4
-        steps, 83.4 % with 3.
+        the finer levels.
     relative_correction : bool
         Correct the relative pointing error of views 2.. by a translation
         estimated from tie points.
@@ -67,10 +52,10 @@ class DSMParams:
     crs: str | None = None
     chunk: int = 512
     levels: int | None = None
-    max_candidates: int = 128
+    max_candidates: int = 192
     height_range: tuple[float, float] | None = None
     height_margin: float = 10.0
-    refine_steps: int = 3
+    refine_steps: int = 4
     relative_correction: bool = True
     match: SGVLLParams = field(default_factory=SGVLLParams)
     search: SearchParams = field(default_factory=SearchParams)
