@@ -293,7 +293,7 @@ def main(argv: list[str] | None = None) -> int:
         for sched in args.schedulers:
             for w in args.workers:
                 rows.append(run_case(case, w, run_dir, args.chunk, args.timeout, args.bounds, sched))
-            print(format_table(rows[-1:]).splitlines()[-1], flush=True)
+                print(format_table(rows[-1:]).splitlines()[-1], flush=True)
     table = format_table(rows)
     print(table)
     scaling = scaling_rows(rows)

@@ -52,11 +52,13 @@ def _variants():
 
 def score(height: np.ndarray, ref: np.ndarray) -> dict:
     """Error statistics of ``height`` against ``ref`` (NaN = none), metres."""
+    from tiledsm.compare.coreg import nmad
+
     e = height - ref
     ok = np.isfinite(e)
     e = e[ok]
     med = float(np.median(e))
-    return {"nmad_m": float(1.4826 * np.median(np.abs(e - med))), "rmse_m": float(np.sqrt(np.mean(e**2))),
+    return {"nmad_m": nmad(e), "rmse_m": float(np.sqrt(np.mean(e**2))),
             "gt10_pct": float(np.mean(np.abs(e - med) > 10) * 100),
             "completeness": float(ok.sum() / np.isfinite(ref).sum())}
 

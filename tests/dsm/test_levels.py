@@ -1,5 +1,6 @@
-"""A finer level's candidate heights: the scene-wide lattice (absolute
-labels, the default) or steps around the coarser surface (relative)."""
+"""A finer level's candidate heights: steps around the coarser surface
+(relative labels, the default) or the scene-wide lattice (absolute labels,
+not chunk invariant yet: see :class:`tiledsm.match.pyramid.SearchParams`)."""
 
 from __future__ import annotations
 

@@ -26,9 +26,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--max-slope", type=float, default=70.0, help="steeper cells (degrees) are not stable terrain")
     p.add_argument("--nmad-k", type=float, default=5.0, help="outliers: |dh - median| > K x NMAD")
     p.add_argument("--chunks", type=int, default=1024, help="tile edge in cells")
-    p.epilog = ("Without --scheduler or --cluster, compare runs on --workers threads of its own process "
-                "(its kernels release the GIL); --cluster FILE with kind: local starts worker processes instead.")
-    add_cluster_arguments(p)
+    add_cluster_arguments(p, default_scheduler="threads")
     add_plan_arguments(p, large=False)
     p.set_defaults(func=run)
 
@@ -44,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     # compare's kernels release the GIL (numpy, numba nogil, GDAL): threads of this process beat a local cluster
     # of processes, which pays for starting workers and for moving blocks between them (benchmarks/compare.py
     # --schedulers cluster threads); a --cluster file (kind: local) keeps processes
-    cluster = cluster_config(args, default_scheduler="threads")
+    cluster = cluster_config(args)
     plan = plan_compare(args.ref, args.other, args.out, stable_mask=args.stable_mask, chunks=args.chunks,
                         cluster=cluster)
     print_warnings("compare", plan.warnings)

@@ -29,9 +29,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--height-range", type=float, nargs=2, default=None, metavar=("HMIN", "HMAX"), help="ellipsoidal metres; default: from tie points")
     p.add_argument("--reference", default=None, help="reference DSM for metrics (same vertical datum as the output)")
     p.add_argument("--geoid", default=None, help="geoid grid (e.g. egm96_15.gtx): write heights above the geoid instead of the WGS84 ellipsoid")
-    p.epilog = ("Without --scheduler or --cluster, dsm runs on --workers threads of its own process (the matching "
-                "kernels release the GIL); --cluster FILE with kind: local starts worker processes instead.")
-    add_cluster_arguments(p)
+    add_cluster_arguments(p, default_scheduler="threads")
     add_overwrite_argument(p)
     add_plan_arguments(p)
     p.set_defaults(func=run)
@@ -82,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     from tiledsm.plan import CLI_NAMES
 
     # the matching kernels are nogil numba, reads are GDAL: threads of this process beat a local cluster of
-    # processes, which pays for starting workers and for moving images and level stores between them (s2p_pair,
-    # full overlap: 7.4 s instead of 10.8 s; benchmarks/dsm.py --schedulers cluster threads)
-    cluster = cluster_config(args, default_scheduler="threads")
+    # processes, which pays for starting workers and for moving images and level stores between them (s2p_pair
+    # on its grid, 2 workers: 9.2 s instead of 12.9 s; benchmarks/dsm.py --schedulers threads cluster)
+    cluster = cluster_config(args)
     return plan_and_run(dsm_recipe(args), args, cluster, CLI_NAMES)

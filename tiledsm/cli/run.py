@@ -11,15 +11,22 @@ __all__ = [
 ]
 
 
-def add_cluster_arguments(p: argparse.ArgumentParser) -> None:
-    """``--cluster``, ``--scheduler`` and ``--workers``, shared by every computing command."""
+def add_cluster_arguments(p: argparse.ArgumentParser, default_scheduler: str | None = None) -> None:
+    """``--cluster``, ``--scheduler`` and ``--workers``, shared by every computing command.
+
+    ``default_scheduler``: what the command runs on without ``--scheduler``
+    or ``--cluster`` (``None``: a local cluster of worker processes;
+    ``"threads"``: threads of its own process), read by :func:`cluster_config`."""
     p.add_argument(
         "--cluster", default=None, metavar="FILE",
         help="YAML file with a recipe's 'cluster' section (kind: local | address | slurm | pbs | sge, "
         "with 'jobqueue' resources for batch systems); --scheduler and --workers override it",
     )
+    default = ("--workers threads of this process (its kernels release the GIL; --cluster FILE with kind: local "
+               "starts worker processes instead)" if default_scheduler == "threads" else "a local cluster")
     p.add_argument("--scheduler", default=None, help="dask scheduler address (tcp://host:8786), 'threads' (--workers threads of this process: "
-                   "no worker processes; suits compare on one machine) or 'synchronous'; default: a local cluster")
+                   f"no worker processes) or 'synchronous'; default: {default}")
+    p.set_defaults(default_scheduler=default_scheduler)
     p.add_argument("--workers", type=int, default=None, help="local workers (one single-threaded process each, >= 1); default: one per core")
     p.add_argument(
         "--memory-per-worker", default=None, metavar="SIZE",
@@ -53,11 +60,10 @@ def add_plan_arguments(p: argparse.ArgumentParser, large: bool = True) -> None:
         )
 
 
-def cluster_config(args: argparse.Namespace, recipe_cluster=None, default_scheduler: str | None = None):
+def cluster_config(args: argparse.Namespace, recipe_cluster=None):
     """The :class:`~tiledsm.cluster.ClusterConfig` of the options (falling
-    back on a recipe's ``cluster`` section, then on the command's
-    ``default_scheduler``: ``None`` for a local cluster); refuses
-    ``--workers`` < 1."""
+    back on a recipe's ``cluster`` section, then on the command's default
+    scheduler, :func:`add_cluster_arguments`); refuses ``--workers`` < 1."""
     import dataclasses
 
     from tiledsm.cluster import ClusterConfig
@@ -86,7 +92,7 @@ def cluster_config(args: argparse.Namespace, recipe_cluster=None, default_schedu
         )
     base = recipe_cluster.config(progress) if recipe_cluster is not None else ClusterConfig(progress=progress)
     return ClusterConfig(
-        scheduler=args.scheduler or base.scheduler or (default_scheduler if recipe_cluster is None else None),
+        scheduler=args.scheduler or base.scheduler or (getattr(args, "default_scheduler", None) if recipe_cluster is None else None),
         workers=args.workers if args.workers is not None else base.workers,
         memory_limit=memory or base.memory_limit,
         progress=progress,
