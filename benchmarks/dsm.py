@@ -105,7 +105,7 @@ def planned_worker_mib(argv: list[str]) -> float | None:
 
 
 def run_case(name: str, workers: int, run_dir: Path, chunk: int, timeout: float,
-             bounds: list[float] | None = None, scheduler: str = "threads") -> dict:
+             bounds: list[float] | None = None, scheduler: str = "threads", levels: int | None = None) -> dict:
     args, info = _case_s2p(run_dir) if name == "s2p" else _case_synth(run_dir, int(name.removeprefix("synth")))
     if bounds:
         if name == "s2p":
@@ -119,6 +119,10 @@ def run_case(name: str, workers: int, run_dir: Path, chunk: int, timeout: float,
         args = args[:i] + args[i + 2:] + ["--crs", crs, "--resolution", str(res), "--bounds", *map(str, bounds)]
         info = {**info, "bounds": bounds}
     out = run_dir / (f"{name}_w{workers}" if scheduler == "cluster" else f"{name}_w{workers}_{scheduler}")
+    if levels:
+        args = [*args, "--levels", str(levels)]
+        info = {**info, "levels_asked": levels}
+        out = out.with_name(f"{out.name}_L{levels}")
     shutil.rmtree(out, ignore_errors=True)  # a finished store would be resumed, not recomputed
     how = scheduler_args(scheduler, workers, run_dir)
     argv = [str(TILEDSM), "dsm", *args, "--out", str(out), *how, "--chunk", str(chunk), "--no-progress"]
@@ -278,6 +282,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="threads: --workers threads of the command's process (tiledsm dsm's default); cluster: a "
                          "local cluster of --workers processes (a --cluster file); each is a row")
     ap.add_argument("--chunk", type=int, default=512)
+    ap.add_argument("--levels", type=int, default=None, help="pyramid levels (default: the command's own choice)")
     ap.add_argument("--bounds", type=float, nargs=4, metavar=("XMIN", "YMIN", "XMAX", "YMAX"),
                     help="synthetic cases: run on this part of the truth grid only (see above)")
     ap.add_argument("--graph-sizes", type=int, nargs="*", default=[4096, 8192, 16384],
@@ -292,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
     for case in args.cases:
         for sched in args.schedulers:
             for w in args.workers:
-                rows.append(run_case(case, w, run_dir, args.chunk, args.timeout, args.bounds, sched))
+                rows.append(run_case(case, w, run_dir, args.chunk, args.timeout, args.bounds, sched, args.levels))
                 print(format_table(rows[-1:]).splitlines()[-1], flush=True)
     table = format_table(rows)
     print(table)

@@ -10,27 +10,30 @@ from tiledsm.match.sgm import aggregate, remove_speckles, winner_take_all
 DIRS = [(0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1)]
 
 
-def _reference(cost, base, P1, P2, guide=None, gamma=1.0):
+def _reference(cost, base, P1, P2, guide=None, gamma=1.0, nvalid=None):
     ny, nx, nd = cost.shape
+    nv = np.full((ny, nx), nd) if nvalid is None else nvalid
     S = np.zeros(cost.shape)
     for dy, dx in DIRS:
-        L = np.zeros(cost.shape)
+        L = np.full(cost.shape, np.inf)
         ys = range(ny) if dy >= 0 else range(ny - 1, -1, -1)
         xs = list(range(nx)) if dx >= 0 else list(range(nx - 1, -1, -1))
         for i in ys:
             for j in xs:
+                n = nv[i, j]
                 pi, pj = i - dy, j - dx
-                if not (0 <= pi < ny and 0 <= pj < nx):
-                    L[i, j] = cost[i, j]
+                # the volume's edge or a gap (a cell without candidates): the path starts here
+                if not (0 <= pi < ny and 0 <= pj < nx) or nv[pi, pj] == 0:
+                    L[i, j, :n] = cost[i, j, :n]
                     continue
                 p2 = P2
                 if guide is not None:
                     p2 = max(P1, P2 / (1 + abs(guide[i, j] - guide[pi, pj]) / gamma))
-                prev = L[pi, pj]
+                prev = L[pi, pj, : nv[pi, pj]]
                 m = prev.min()
-                for k in range(nd):
+                for k in range(n):
                     lab = base[i, j] + k
-                    dl = np.abs(base[pi, pj] + np.arange(nd) - lab)
+                    dl = np.abs(base[pi, pj] + np.arange(prev.size) - lab)
                     pen = np.where(dl == 0, 0.0, np.where(dl == 1, P1, p2))
                     L[i, j, k] = cost[i, j, k] + min((prev + pen).min(), m + p2) - m
         S += L
@@ -44,6 +47,41 @@ def test_aggregate_matches_reference(with_base):
     base = rng.integers(-2, 3, (6, 8)) if with_base else np.zeros((6, 8), int)
     S = aggregate(cost, 0.1, 0.7, base=base)
     assert np.abs(S - _reference(cost, base, 0.1, 0.7)).max() < 1e-5
+
+
+@pytest.mark.parametrize("fast", [False, True], ids=["reference", "fast"])
+def test_absent_candidates_never_enter_a_path(fast):
+    """Cells with fewer candidates than the volume is deep, and gaps
+    without any: the result is the recursion over the candidates that
+    exist, whatever the padding holds and however deep it is (the
+    padded cost 4.0 exceeds any real cost plus P2, so it would win path
+    steps if it took part)."""
+    rng = np.random.default_rng(5)
+    ny, nx, nd = 9, 11, 6
+    cost = rng.random((ny, nx, nd)).astype(np.float32) * 2
+    base = rng.integers(-4, 5, (ny, nx))
+    nvalid = rng.integers(1, nd + 1, (ny, nx))
+    nvalid[4, 2:9] = 0  # a gap across the paths
+    nvalid[1, 1] = 0
+    present = np.arange(nd) < nvalid[..., None]
+    ref = _reference(cost, base, 0.3, 2.0, nvalid=nvalid)
+    for pad, depth in ((4.0, 0), (4.0, 5), (0.0, 3), (np.nan, 2)):
+        padded = np.where(present, cost, np.float32(pad))
+        padded = np.concatenate([padded, np.full((ny, nx, depth), pad, np.float32)], axis=2)
+        S = aggregate(padded, 0.3, 2.0, base=base, nvalid=nvalid, fast=fast)
+        assert np.abs(S[..., :nd][present] - ref[present]).max() < 1e-5
+        assert np.isposinf(S[..., :nd][~present]).all() and np.isposinf(S[..., nd:]).all()
+
+
+def test_fast_aggregation_equals_reference_bit_for_bit():
+    rng = np.random.default_rng(6)
+    cost = (rng.random((30, 37, 9)) * 2).astype(np.float32)
+    cost[rng.random(cost.shape) < 0.05] = np.nan
+    base = rng.integers(-5, 6, (30, 37))
+    nvalid = rng.integers(0, 10, (30, 37))
+    for period in (0, 8):
+        kw = dict(base=base, nvalid=nvalid, restart_period=period, origin=(3, 5))
+        assert np.array_equal(aggregate(cost, 0.3, 2.0, **kw), aggregate(cost, 0.3, 2.0, fast=True, **kw))
 
 
 def test_aggregate_adaptive_p2_and_nan():

@@ -52,27 +52,24 @@ class SearchParams:
         itself had no height.
     relative_labels : bool
         Candidate heights of the finer level on the lattice ``h_ref + k *
-        step`` (labels relative to the reference surface: semi-global
-        penalties count steps away from a surface parallel to ``h_ref``;
-        the default) or on the scene-wide lattice ``k * step`` (absolute
-        labels: penalties count height changes, as at a single level; the
-        band is the same). Absolute labels measured better (``s2p_pair``
-        on s2p's grid at 2 levels: NMAD 0.303 m, the single level's,
-        against 0.317 m relative; ``benchmarks/dsm_search.py``) but are
-        **not chunk invariant yet**: neighbouring cells' bands are then
-        shifted against each other, and the padded candidates of a block
-        (``MASKED_COST`` of :mod:`tiledsm.match.sweep`, as deep as the
-        block's widest band) enter the semi-global paths, so the result
-        depends on the block (0.079 m at chunks of 64 in
-        ``tests/test_dsm_engine.py``). Off until the aggregation skips
-        masked candidates.
+        step`` (labels relative to the reference surface: the semi-global
+        penalties then count steps away from a surface parallel to the
+        smoothed coarser DSM) or on the scene-wide lattice ``k * step``
+        (absolute labels, the default: penalties count height changes, as
+        at a single level; the band is the same). Neighbouring cells' bands
+        are then shifted against each other; the aggregation leaves out the
+        candidates a cell does not have (``nvalid`` of
+        :func:`tiledsm.match.sgm.aggregate`), so the result is the same in
+        every chunking. On ``s2p_pair`` at 2 levels, absolute labels keep
+        the single level's NMAD where relative ones lose 0.014 m
+        (``benchmarks/dsm_search.py``, ``benchmarks/blunders.py``).
     """
 
     smooth: float = 1.0
     fill_sigma: float = 4.0
     truncate: float = 3.0
     hole_factor: float = 3.0
-    relative_labels: bool = True
+    relative_labels: bool = False
 
     def __post_init__(self) -> None:
         if self.smooth <= 0 or self.fill_sigma < self.smooth or self.truncate <= 0 or self.hole_factor < 1:

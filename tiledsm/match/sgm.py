@@ -21,6 +21,13 @@ min_k' L_r(q, k') + P2) - min_k' L_r(q, k')`` with ``s = base[p] - base[q]``;
 entries of ``q`` outside ``0..nd-1`` are absent. With ``base = 0``
 everywhere this is the textbook recursion.
 
+A cell may have fewer candidates than the volume is deep: ``nvalid[i, j]``
+says how many exist (``k < nvalid``); the others are absent from every
+path (never a path's minimum, never a neighbour's predecessor), so a
+cell's result does not depend on how deep a block pads its volume. A cell
+with no candidates (``nvalid == 0``) is a gap: paths restart after it, as
+at the volume's edge.
+
 Costs that are NaN (invalid) are replaced by ``invalid_cost`` before
 aggregation. Optional adaptive ``P2``: with a guide image ``g``,
 ``P2(p, q) = max(P1, P2 / (1 + |g(p) - g(q)| / p2_gamma))`` (smaller
@@ -52,47 +59,57 @@ def _penalty2(P1, P2, guide, use_guide, gamma, i, j, pi, pj):
 
 
 @nb.njit(nogil=True, cache=True)
-def _step(cost, i, j, prev, prev_min, shift, P1, P2, out):
-    """One path update; returns the minimum of ``out``.
+def _step(cost, i, j, prev, prev_min, shift, P1, P2, out, n):
+    """One path update of the ``n`` candidates that exist; returns the
+    minimum of ``out`` (+inf when ``n == 0``).
 
     ``prev`` and ``out`` are padded buffers: the ``nd`` path costs live at
     ``[pad : pad + nd]`` with ``pad = nd + 1`` and +inf around them, so that
-    any ``|shift| <= nd`` reads inside the buffer without bounds checks.
+    any ``|shift| <= nd`` reads inside the buffer without bounds checks;
+    absent candidates (``k >= n``) are +inf too. The transition is the
+    cheapest of staying, a one-label change (+``P1``) and any jump
+    (+``P2``), taken relative to ``prev_min``: a jump beyond the
+    neighbour's candidates then costs exactly ``P2`` however deep the
+    buffer is.
     """
     nd = cost.shape[2]
     pad = nd + 1
-    lim = prev_min + P2
     best = _INF
+    p2 = np.float64(P2)
     if shift > nd or shift < -nd:
-        for k in range(nd):
-            o = cost[i, j, k] + P2
+        for k in range(n):
+            o = np.float64(cost[i, j, k]) + p2
             out[pad + k] = o
             if o < best:
                 best = o
-        return best
-    o0 = pad + shift
-    for k in range(nd):
-        q = o0 + k
-        m = min(prev[q], min(prev[q - 1], prev[q + 1]) + P1)
-        if lim < m:
-            m = lim
-        o = cost[i, j, k] + m - prev_min
-        out[pad + k] = o
-        if o < best:
-            best = o
+    else:
+        o0 = pad + shift
+        for k in range(n):
+            q = o0 + k
+            m = np.float64(min(prev[q], min(prev[q - 1], prev[q + 1]) + P1)) - np.float64(prev_min)
+            if p2 < m:
+                m = p2
+            o = np.float64(cost[i, j, k]) + m
+            out[pad + k] = o
+            if o < best:
+                best = o
+    for k in range(n, nd):
+        out[pad + k] = _INF
     return best
 
 
 @nb.njit(nogil=True, cache=True)
-def _init(cost, i, j, out):
+def _init(cost, i, j, out, n):
     nd = cost.shape[2]
     pad = nd + 1
     best = _INF
-    for k in range(nd):
+    for k in range(n):
         o = cost[i, j, k]
         out[pad + k] = o
         if o < best:
             best = o
+    for k in range(n, nd):
+        out[pad + k] = _INF
     return best
 
 
@@ -123,12 +140,13 @@ def _path_buffers(nx, nd):
 
 
 @nb.njit(nogil=True, cache=True)
-def _pass(cost, base, P1, P2, guide, use_guide, gamma, S, forward, gi0, gj0, period):
+def _pass(cost, base, nvalid, P1, P2, guide, use_guide, gamma, S, forward, gi0, gj0, period):
     """Four paths in one sweep (rows top-down if ``forward`` else bottom-up).
 
     Cell ``[i, j]`` is cell ``[gi0 + i, gj0 + j]`` of the whole grid; with
     ``period > 0`` every path restarts on the grid's lines every
-    ``period`` cells (see :func:`aggregate`)."""
+    ``period`` cells (see :func:`aggregate`), and after a cell without
+    candidates."""
     ny, nx, nd = cost.shape
     sgn = 1 if forward else -1
     pad, width, prev, prev_min, cur, cur_min = _path_buffers(nx, nd)
@@ -140,12 +158,13 @@ def _pass(cost, base, P1, P2, guide, use_guide, gamma, S, forward, gi0, gj0, per
         # in-row path: left-to-right (forward) or right-to-left (backward)
         for u in range(nx):
             j = u if forward else nx - 1 - u
-            if u == 0 or _restarts(gj0 + j, sgn, period):
-                rmin = _init(cost, i, j, row)
+            n = nvalid[i, j]
+            if u == 0 or _restarts(gj0 + j, sgn, period) or nvalid[i, j - sgn] == 0:
+                rmin = _init(cost, i, j, row, n)
             else:
                 pj = j - sgn
                 p2 = _penalty2(P1, P2, guide, use_guide, gamma, i, j, i, pj)
-                rmin = _step(cost, i, j, row, rmin, base[i, j] - base[i, pj], P1, p2, row_new)
+                rmin = _step(cost, i, j, row, rmin, base[i, j] - base[i, pj], P1, p2, row_new, n)
                 row, row_new = row_new, row
             for k in range(nd):
                 S[i, j, k] += row[pad + k]
@@ -155,12 +174,13 @@ def _pass(cost, base, P1, P2, guide, use_guide, gamma, S, forward, gi0, gj0, per
             for j in range(nx):
                 pj = j - dx
                 restart = _restarts(gi0 + i, sgn, period) or (dx != 0 and _restarts(gj0 + j, dx, period))
-                if t == 0 or pj < 0 or pj >= nx or restart:
-                    cur_min[d, j] = _init(cost, i, j, cur[d, j])
+                n = nvalid[i, j]
+                if t == 0 or pj < 0 or pj >= nx or restart or nvalid[pi, pj] == 0:
+                    cur_min[d, j] = _init(cost, i, j, cur[d, j], n)
                 else:
                     p2 = _penalty2(P1, P2, guide, use_guide, gamma, i, j, pi, pj)
                     cur_min[d, j] = _step(
-                        cost, i, j, prev[d, pj], prev_min[d, pj], base[i, j] - base[pi, pj], P1, p2, cur[d, j]
+                        cost, i, j, prev[d, pj], prev_min[d, pj], base[i, j] - base[pi, pj], P1, p2, cur[d, j], n
                     )
                 for k in range(nd):
                     S[i, j, k] += cur[d, j, pad + k]
@@ -180,19 +200,23 @@ def _fill_invalid(cost, value):
     return out
 
 
-def _checked(cost, P1: float, P2: float, base) -> tuple[np.ndarray, np.ndarray]:
-    """The volume as contiguous float32 and ``base`` as int64 (zeros when
+def _checked(cost, P1: float, P2: float, base, nvalid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The volume as contiguous float32, ``base`` as int64 (zeros when
+    ``None``) and ``nvalid`` as int64 clipped to ``0..nd`` (``nd`` when
     ``None``), after checking shapes and penalties."""
     cost = np.asarray(cost)
     if cost.ndim != 3 or min(cost.shape) < 1:
         raise ValueError(f"aggregate: cost volume must be (ny, nx, nd) and non-empty, got {cost.shape}")
     if P2 < P1 or P1 < 0:
         raise ValueError(f"aggregate: need 0 <= P1 <= P2, got P1={P1}, P2={P2}")
-    ny, nx, _ = cost.shape
+    ny, nx, nd = cost.shape
     b = np.zeros((ny, nx), np.int64) if base is None else np.ascontiguousarray(base, np.int64)
     if b.shape != (ny, nx):
         raise ValueError(f"aggregate: base has shape {b.shape}, expected {(ny, nx)}")
-    return np.ascontiguousarray(cost, np.float32), b
+    n = np.full((ny, nx), nd, np.int64) if nvalid is None else np.clip(np.asarray(nvalid, np.int64), 0, nd)
+    if n.shape != (ny, nx):
+        raise ValueError(f"aggregate: nvalid has shape {n.shape}, expected {(ny, nx)}")
+    return np.ascontiguousarray(cost, np.float32), b, np.ascontiguousarray(n)
 
 
 def aggregate(
@@ -200,6 +224,7 @@ def aggregate(
     P1: float,
     P2: float,
     base: np.ndarray | None = None,
+    nvalid: np.ndarray | None = None,
     guide: np.ndarray | None = None,
     p2_gamma: float = 10.0,
     invalid_cost: float = 1.0,
@@ -219,6 +244,10 @@ def aggregate(
     base : numpy.ndarray, optional
         ``(ny, nx)`` integer absolute label of candidate 0 of each cell (see
         the module docstring); zeros when omitted.
+    nvalid : numpy.ndarray, optional
+        ``(ny, nx)`` number of candidates each cell has (``k < nvalid``;
+        the others are absent from the paths and their ``S`` is +inf; 0 =
+        a gap the paths restart after); ``nd`` when omitted.
     guide : numpy.ndarray, optional
         ``(ny, nx)`` intensity image for the adaptive ``P2``.
     p2_gamma : float
@@ -247,15 +276,16 @@ def aggregate(
     Returns
     -------
     numpy.ndarray
-        ``(ny, nx, nd)`` float32 aggregated cost ``S`` (sum of 8 paths).
+        ``(ny, nx, nd)`` float32 aggregated cost ``S`` (sum of 8 paths);
+        +inf for absent candidates.
     """
-    cost, b = _checked(cost, P1, P2, base)
+    cost, b, n = _checked(cost, P1, P2, base, nvalid)
     gi0, gj0, period = int(origin[0]), int(origin[1]), int(restart_period)
     if fast and guide is None:
         S = np.zeros(cost.shape, np.float32)
         p1, p2, inv = np.float32(P1), np.float32(P2), np.float32(invalid_cost)
-        _pass_fast(cost, b, p1, p2, S, True, gi0, gj0, period, inv)
-        _pass_fast(cost, b, p1, p2, S, False, gi0, gj0, period, inv)
+        _pass_fast(cost, b, n, p1, p2, S, True, gi0, gj0, period, inv)
+        _pass_fast(cost, b, n, p1, p2, S, False, gi0, gj0, period, inv)
         return S
     ny, nx, _ = cost.shape
     c = _fill_invalid(cost, np.float32(invalid_cost))
@@ -265,8 +295,8 @@ def aggregate(
         raise ValueError(f"aggregate: guide has shape {g.shape}, expected {(ny, nx)}")
     S = np.zeros(c.shape, np.float32)
     p1, p2, gamma = np.float32(P1), np.float32(P2), np.float32(p2_gamma)
-    _pass(c, b, p1, p2, g, use_guide, gamma, S, True, gi0, gj0, period)
-    _pass(c, b, p1, p2, g, use_guide, gamma, S, False, gi0, gj0, period)
+    _pass(c, b, n, p1, p2, g, use_guide, gamma, S, True, gi0, gj0, period)
+    _pass(c, b, n, p1, p2, g, use_guide, gamma, S, False, gi0, gj0, period)
     return S
 
 
@@ -276,69 +306,80 @@ def aggregate(
 
 
 @nb.njit(nogil=True, cache=True, inline="always")
-def _step_fast(c, prev, o0, prev_min, P1, P2, out, pad, ob):
+def _step_fast(c, prev, o0, prev_min, P1, P2, out, pad, ob, n):
     """:func:`_step` on one cell's (NaN-filled) costs ``c``; ``o0 = pad + shift``.
 
     The arithmetic types are :func:`_step`'s as compiled there (where the
-    ``P2`` of :func:`_penalty2` is a float64): the jump limit, the path
-    cost before it is stored (float32) and the returned minimum are
-    float64, the neighbour minimum float32. The path costs are computed
-    in one vectorised loop (``ob``: float64 scratch), their minimum in a
-    second one with four running minima (exact in any order)."""
+    ``P2`` of :func:`_penalty2` is a float64): the transition relative to
+    the neighbour minimum, the path cost before it is stored (float32) and
+    the returned minimum are float64, the neighbour's costs float32. The
+    path costs are computed in one vectorised loop (``ob``: float64
+    scratch), their minimum in a second one with four running minima
+    (exact in any order)."""
     nd = c.shape[0]
-    lim = np.float64(prev_min) + np.float64(P2)
     pv = prev[o0 - 1 : o0 + nd + 1]
     ot = out[pad : pad + nd]
-    for k in range(nd):
-        m = np.float64(min(pv[k + 1], min(pv[k], pv[k + 2]) + P1))
-        m = min(m, lim)
-        o = np.float64(c[k]) + m - prev_min
+    for k in range(n):
+        m = np.float64(min(pv[k + 1], min(pv[k], pv[k + 2]) + P1)) - prev_min
+        m = min(m, P2)
+        o = np.float64(c[k]) + m
         ob[k] = o
         ot[k] = o
-    return _min4(ob, nd)
+    return _min4(ob, n)
 
 
 @nb.njit(nogil=True, cache=True, inline="always")
-def _min4(ob, nd):
+def _min4(ob, n):
+    if n <= 0:
+        return np.float64(_INF)
     b0 = ob[0]
     b1 = b0
     b2 = b0
     b3 = b0
     k = 0
-    while k + 4 <= nd:
+    while k + 4 <= n:
         b0 = min(b0, ob[k])
         b1 = min(b1, ob[k + 1])
         b2 = min(b2, ob[k + 2])
         b3 = min(b3, ob[k + 3])
         k += 4
-    while k < nd:
+    while k < n:
         b0 = min(b0, ob[k])
         k += 1
     return min(min(b0, b1), min(b2, b3))
 
 
 @nb.njit(nogil=True, cache=True, inline="always")
-def _init_fast(c, out, pad, ob):
-    nd = c.shape[0]
-    ot = out[pad : pad + nd]
-    for k in range(nd):
-        ot[k] = c[k]
-        ob[k] = c[k]
-    return np.float32(_min4(ob, nd))
+def _absent(out, pad, n, nd):
+    # candidates a cell does not have: +inf, as outside the buffer
+    for k in range(pad + n, pad + nd):
+        out[k] = _INF
 
 
 @nb.njit(nogil=True, cache=True, inline="always")
-def _update(c, prev, shift, prev_min, P1, P2, out, pad, ob):
-    # a jump farther than the candidates: only the P2 transition exists
+def _init_fast(c, out, pad, ob, n):
     nd = c.shape[0]
+    ot = out[pad : pad + nd]
+    for k in range(n):
+        ot[k] = c[k]
+        ob[k] = c[k]
+    _absent(out, pad, n, nd)
+    return np.float32(_min4(ob, n))
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def _update(c, prev, shift, prev_min, P1, P2, out, pad, ob, n):
+    nd = c.shape[0]
+    _absent(out, pad, n, nd)
+    # a jump farther than the candidates: only the P2 transition exists
     if shift > nd or shift < -nd:
         ot = out[pad : pad + nd]
-        for k in range(nd):
+        for k in range(n):
             o = np.float64(c[k]) + np.float64(P2)
             ob[k] = o
             ot[k] = o
-        return _min4(ob, nd)
-    return _step_fast(c, prev, pad + shift, np.float64(prev_min), P1, P2, out, pad, ob)
+        return _min4(ob, n)
+    return _step_fast(c, prev, pad + shift, np.float64(prev_min), P1, np.float64(P2), out, pad, ob, n)
 
 
 @nb.njit(nogil=True, cache=True)
@@ -354,7 +395,7 @@ def _fill_row(cost, i, value, out):
 
 
 @nb.njit(nogil=True, cache=True)
-def _pass_fast(cost, base, P1, P2, S, forward, gi0, gj0, period, invalid):
+def _pass_fast(cost, base, nvalid, P1, P2, S, forward, gi0, gj0, period, invalid):
     """:func:`_pass` without a guide, bit for bit: invalid costs filled row
     by row (no filled copy of the volume), the four paths of a row summed
     into ``S`` in one sweep, in the reference's order."""
@@ -371,21 +412,23 @@ def _pass_fast(cost, base, P1, P2, S, forward, gi0, gj0, period, invalid):
         rmin = 0.0  # float64, as in _pass
         for u in range(nx):
             j = u if forward else nx - 1 - u
-            if u == 0 or _restarts(gj0 + j, sgn, period):
-                rmin = np.float64(_init_fast(crow[j], inrow[j], pad, ob))
+            n = nvalid[i, j]
+            if u == 0 or _restarts(gj0 + j, sgn, period) or nvalid[i, j - sgn] == 0:
+                rmin = np.float64(_init_fast(crow[j], inrow[j], pad, ob, n))
             else:
                 pj = j - sgn
-                rmin = _update(crow[j], inrow[pj], base[i, j] - base[i, pj], rmin, P1, P2, inrow[j], pad, ob)
+                rmin = _update(crow[j], inrow[pj], base[i, j] - base[i, pj], rmin, P1, P2, inrow[j], pad, ob, n)
         for d in range(3):
             dx = d - 1
             for j in range(nx):
                 pj = j - dx
                 restart = _restarts(gi0 + i, sgn, period) or (dx != 0 and _restarts(gj0 + j, dx, period))
-                if t == 0 or pj < 0 or pj >= nx or restart:
-                    cur_min[d, j] = _init_fast(crow[j], cur[d, j], pad, ob)
+                n = nvalid[i, j]
+                if t == 0 or pj < 0 or pj >= nx or restart or nvalid[pi, pj] == 0:
+                    cur_min[d, j] = _init_fast(crow[j], cur[d, j], pad, ob, n)
                 else:
                     cur_min[d, j] = _update(
-                        crow[j], prev[d, pj], base[i, j] - base[pi, pj], prev_min[d, pj], P1, P2, cur[d, j], pad, ob
+                        crow[j], prev[d, pj], base[i, j] - base[pi, pj], prev_min[d, pj], P1, P2, cur[d, j], pad, ob, n
                     )
         for j in range(nx):
             s = S[i, j]

@@ -556,7 +556,7 @@ def match_block(
 
     t_start = time.perf_counter()
     S = kernel.aggregate(
-        vol, params.P1, params.P2, base=base, invalid_cost=params.invalid_cost,
+        vol, params.P1, params.P2, base=base, nvalid=nvalid, invalid_cost=params.invalid_cost,
         origin=(gi0, gj0), restart_period=params.path_period,
     )
     t_sgm = time.perf_counter() - t_start
