@@ -15,6 +15,7 @@ import pytest
 from tiledsm.dsm import DSMParams, dsm_from_pair
 from tiledsm.geometry.grid import GroundGrid
 from tiledsm.io.grids import grid_like
+from tiledsm.match.pyramid import SearchParams
 from tiledsm.workflows.common import reference_on_grid
 from tiledsm.synth import TowerParams, make_scene
 
@@ -68,14 +69,15 @@ def _accuracy(scene, height: np.ndarray, like) -> tuple[float, float]:
 
 # ------------------------------------------------------------------ chunk invariance
 @pytest.mark.parametrize(
-    "levels, views, given_range",
+    "levels, views, given_range, relative",
     [
-        pytest.param(2, 2, False, id="L2-2views"),
-        pytest.param(3, 2, True, id="L3-2views", marks=pytest.mark.slow),
-        pytest.param(2, 3, False, id="L2-3views", marks=pytest.mark.slow),
+        pytest.param(2, 2, False, False, id="L2-2views"),
+        pytest.param(2, 2, False, True, id="L2-2views-relative-labels", marks=pytest.mark.slow),
+        pytest.param(3, 2, True, False, id="L3-2views", marks=pytest.mark.slow),
+        pytest.param(2, 3, False, False, id="L2-3views", marks=pytest.mark.slow),
     ],
 )
-def test_dsm_is_bit_identical_in_every_chunking(scene_of, levels, views, given_range):
+def test_dsm_is_bit_identical_in_every_chunking(scene_of, levels, views, given_range, relative):
     """Chunk sides 64, 100 (does not divide the 384-cell grid), 256 and one
     chunk for the whole grid give the **bit-identical** DSM: same NaN mask,
     same heights and confidences to the last bit (``assert_array_equal``),
@@ -83,13 +85,18 @@ def test_dsm_is_bit_identical_in_every_chunking(scene_of, levels, views, given_r
     against the truth, so the test cannot pass on an empty DSM.
 
     ``given_range``: the scene's guaranteed height range is given instead of
-    the tie-point estimate (a wider search, where 3 levels make sense)."""
+    the tie-point estimate (a wider search, where 3 levels make sense).
+    ``relative``: finer levels count candidates from the coarser surface
+    instead of the scene-wide lattice (absolute labels, the default, shift
+    neighbouring bands against each other: the aggregation must leave out
+    each block's padding)."""
     scene = scene_of(views)
     results = {}
     for chunk in CHUNKS:
         grid = grid_like(scene.truth_dsm, chunk=chunk)
         params = DSMParams(
-            chunk=chunk, levels=levels, height_range=tuple(scene.height_range) if given_range else None
+            chunk=chunk, levels=levels, height_range=tuple(scene.height_range) if given_range else None,
+            search=SearchParams(relative_labels=relative),
         )
         height, conf, ds, report = _dsm(scene.views, grid, params)
         assert ds.attrs["levels"] == levels

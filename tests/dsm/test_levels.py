@@ -1,6 +1,7 @@
-"""A finer level's candidate heights: steps around the coarser surface
-(relative labels, the default) or the scene-wide lattice (absolute labels,
-not chunk invariant yet: see :class:`tiledsm.match.pyramid.SearchParams`)."""
+"""A finer level's candidate heights: the scene-wide lattice (absolute
+labels, the default) or steps around the coarser surface (relative labels;
+see :class:`tiledsm.match.pyramid.SearchParams`). Chunk invariance of both
+is in ``tests/test_dsm_engine.py``."""
 
 from __future__ import annotations
 
