@@ -62,8 +62,10 @@ mask (8-connectivity) with their size, position, sign, distance to the footprint
 the reference's valid area), to the tool's own holes and to tiledsm's chunk seams; terrain slope
 (from the reference) and image texture (std of img_01 in a 9 x 9 px window, sampled by projecting
 each cell through img_01's RPC) on blunders vs good cells; tiledsm's ``confidence`` layer
-(``dsm.zarr``) on blunders vs good cells, and what a confidence threshold would remove. A PNG per
-tool shows the error map with the blunders marked.
+(``dsm.zarr``) on blunders vs good cells, and what a confidence threshold would remove; and whether
+the reference's height lies within 2 cells in the tool's own DSM (within 3 m, after the median
+offset): an edge, such as a cliff's, falling a cell or two apart between the two DSMs rather than a
+wrong height. A PNG per tool shows the error map with the blunders marked.
 
 Usage::
 
@@ -116,6 +118,7 @@ TEXTURE_WIN = 9  # px, window of the image std
 BORDER_PX = 20  # "at an image / ROI edge": within this many pixels (about 10 m) of it
 HOLE_CELLS = 2  # "beside a hole": within this many cells (1 m) of a no-height cell
 SEAM_CELLS = 10  # "at a chunk seam": within this many tool cells of a seam between chunks
+STEP_EDGE_M = 3.0  # "an edge a cell apart": the reference height found this close within HOLE_CELLS cells
 #: The ROI (col, row, width, height in img_01) s2p's shipped DSM was computed in (../shared/data/README.md).
 REFERENCE_ROI = (150, 150, 700, 700)
 
@@ -363,7 +366,18 @@ def diagnose(e: np.ndarray, r: np.ndarray, h: np.ndarray, ref, *, conf: np.ndarr
     def share(mask_fn):
         return {"blunders": float(np.mean(mask_fn(bl))), "good": float(np.mean(mask_fn(good)))}
 
+    # the reference's height lies within HOLE_CELLS cells in the tool's own DSM: an edge (a
+    # cliff, a roof) a cell or two apart between the two DSMs, not a wrong height
+    offset = float(np.nanmedian(h - r - e))
+    near = np.full(e.shape, np.inf)
+    k = HOLE_CELLS
+    hp = np.pad(h - offset, k, constant_values=np.nan)
+    for di in range(-k, k + 1):
+        for dj in range(-k, k + 1):
+            shifted = hp[k + di: k + di + e.shape[0], k + dj: k + dj + e.shape[1]]
+            near = np.fmin(near, np.abs(shifted - r))
     where = {
+        f"reference_height_within_{HOLE_CELLS}_cells_in_the_tool_dsm": share(lambda m: near[m] <= STEP_EDGE_M),
         f"within_{HOLE_CELLS}_cells_of_a_tool_hole": share(lambda m: d_hole[m] <= HOLE_CELLS),
         f"within_{HOLE_CELLS}_cells_of_a_reference_hole": share(lambda m: d_refhole[m] <= HOLE_CELLS),
         "components_touching_a_tool_hole": float(np.mean([c["tool_hole_dist_min"] <= 1.5 for c in comps])),
