@@ -10,7 +10,8 @@ cells with a height). The variants:
 - ``levels=2`` with *relative* labels (``SearchParams.relative_labels``: candidates ``h_ref + k
   step`` around the smoothed coarse DSM), with the coarse smoothing ``smooth`` 1 and 3 cells;
 - ``levels=2`` with *absolute* labels (the scene-wide lattice ``k step``, the default; see
-  :class:`tiledsm.match.pyramid.SearchParams`), band ``refine_steps`` 4 and 3, smooth 1 and 3.
+  :class:`tiledsm.match.pyramid.SearchParams`), band ``refine_steps`` 4 and 3, smooth 1 and 3, the
+  coarse sweep at twice its level's step (``DSMParams.sweep_step_factor``, the default) or at it.
 
 Usage::
 
@@ -47,6 +48,9 @@ def _variants():
                                                  "search": SearchParams(relative_labels=True, smooth=3.0)}),
         ("2 levels, absolute labels, band 4 steps (the default)", {"levels": 2, "refine_steps": 4,
                                                                    "search": SearchParams(relative_labels=False)}),
+        ("2 levels, absolute labels, coarse sweep at the level's own step", {"levels": 2, "refine_steps": 4,
+                                                                            "sweep_step_factor": 1.0,
+                                                                            "search": SearchParams(relative_labels=False)}),
         ("2 levels, absolute labels, band 3 steps", {"levels": 2, "refine_steps": 3,
                                                      "search": SearchParams(relative_labels=False)}),
         ("2 levels, absolute labels, smooth 3", {"levels": 2, "refine_steps": 4,

@@ -58,8 +58,15 @@ class LevelGeometry:
         return 2**self.level
 
 
-def level_geometry(views: Sequence[View], grid: GroundGrid, level: int, h_range, params: DSMParams) -> LevelGeometry:
-    """The :class:`LevelGeometry` of pyramid level ``level`` of ``grid``."""
+def level_geometry(
+    views: Sequence[View], grid: GroundGrid, level: int, h_range, params: DSMParams, coarsest: bool = False
+) -> LevelGeometry:
+    """The :class:`LevelGeometry` of pyramid level ``level`` of ``grid``.
+
+    ``coarsest``: the level is the coarsest of a pyramid of two or more
+    levels, the one that sweeps the whole height range; its step is then
+    ``params.sweep_step_factor`` times the level's own (see
+    :class:`~tiledsm.dsm.params.DSMParams`)."""
     from tiledsm.match.sgvll import height_step, pair_weights
 
     lgrid = level_grid(grid, level)
@@ -68,6 +75,8 @@ def level_geometry(views: Sequence[View], grid: GroundGrid, level: int, h_range,
     rpcs = [v.rpc.scaled(1.0 / f) if f > 1 else v.rpc for v in views]
     h = float(np.mean(h_range))
     step = float(height_step(rpcs, lon, lat, h, params.match))
+    if coarsest and level > 0:
+        step *= params.sweep_step_factor
     return LevelGeometry(level, lgrid, step, pair_weights(rpcs, lon, lat, h))
 
 
