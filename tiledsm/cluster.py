@@ -170,6 +170,11 @@ class ClusterConfig:
     progress: bool = True
     jobqueue: JobQueueConfig | None = None
 
+    @property
+    def local_workers(self) -> int:
+        """Local workers or threads to start: ``workers``, else one per core."""
+        return self.workers or os.cpu_count() or 1
+
     def __post_init__(self) -> None:
         if self.jobqueue is not None and self.scheduler is not None:
             from tiledsm.errors import InvalidOptionError
@@ -230,7 +235,7 @@ def worker_memory_budget(config: ClusterConfig | None) -> int | None:
         return int(psutil.virtual_memory().total)
     if config.scheduler not in (None, "threads"):  # threads share this process: each task its share, as a worker's
         return None
-    return int(psutil.virtual_memory().total / (config.workers or os.cpu_count() or 1))
+    return int(psutil.virtual_memory().total / config.local_workers)
 
 
 @contextlib.contextmanager
@@ -269,7 +274,7 @@ def _compute_context(config: ClusterConfig) -> Iterator[object | None]:
         return
     if config.scheduler == "threads":
         single_threaded_libraries()  # one thread per task, as in a worker process
-        with dask.config.set(scheduler="threads", num_workers=config.workers or os.cpu_count() or 1):
+        with dask.config.set(scheduler="threads", num_workers=config.local_workers):
             yield None
         return
     from distributed import Client, LocalCluster
@@ -285,7 +290,7 @@ def _compute_context(config: ClusterConfig) -> Iterator[object | None]:
             client.run(single_threaded_libraries)
             yield client
         return
-    n = config.workers or os.cpu_count() or 1
+    n = config.local_workers
     # Workers inherit the environment at spawn: set it before they start.
     for key, value in SINGLE_THREAD_ENV.items():
         os.environ.setdefault(key, value)

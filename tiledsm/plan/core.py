@@ -257,15 +257,15 @@ def describe_cluster(config) -> str:
             + (f", queue {jq.queue}" if jq.queue else "") + (f", account {jq.account}" if jq.account else "")
         )
     if config is None or config.scheduler is None:
-        from tiledsm.cluster import worker_memory_budget
+        from tiledsm.cluster import ClusterConfig, worker_memory_budget
 
-        n = (config.workers if config is not None else None) or os.cpu_count() or 1
+        n = (config or ClusterConfig()).local_workers
         limit = worker_memory_budget(config)
         return f"local cluster: {n} single-threaded worker processes, memory limit ~{limit / GIB:.1f} GiB each"
     if config.scheduler == "synchronous":
         return "in this process (synchronous scheduler)"
     if config.scheduler == "threads":
-        return f"in this process: {config.workers or os.cpu_count() or 1} threads (threaded scheduler, no worker processes)"
+        return f"in this process: {config.local_workers} threads (threaded scheduler, no worker processes)"
     return f"existing cluster at {config.scheduler} (not contacted by the plan)"
 
 

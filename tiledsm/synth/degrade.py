@@ -28,7 +28,7 @@ from scipy import sparse
 
 from tiledsm.errors import InputFileError, TiledsmError
 
-__all__ = ["degrade", "resample_matrix", "KERNELS"]
+__all__ = ["degrade", "gaussian_sigma", "resample_matrix", "KERNELS"]
 
 
 def _cubic(x, a=-0.5):
@@ -43,8 +43,14 @@ def _bicubic_kernel(scale, sigma):
     return (lambda d: _cubic(d / scale)), 2.0 * scale
 
 
+def gaussian_sigma(scale: float, sigma: float | None = None) -> float:
+    """The Gaussian degradation's sigma, input pixels: ``sigma``, or half
+    the scale factor when it is not given."""
+    return 0.5 * scale if sigma is None else float(sigma)
+
+
 def _gaussian_kernel(scale, sigma):
-    s = 0.5 * scale if sigma is None else float(sigma)
+    s = gaussian_sigma(scale, sigma)
     if s <= 0:
         raise TiledsmError(f"degrade: gaussian sigma must be > 0, got {s}")
     return (lambda d: np.exp(-0.5 * (d / s) ** 2)), 4.0 * s

@@ -79,7 +79,7 @@ from tiledsm.recipes import (
     OutputSpec,
     StrictModel,
 )
-
+from tiledsm.synth.degrade import gaussian_sigma
 from tiledsm.workflows.sr_scores import (
     RegionRule, SRDSMError, compare_by_region, compare_on_common, image_quality, markdown_report, regions_from_truth,
 )
@@ -130,7 +130,7 @@ class SRSpec(StrictModel):
     @model_validator(mode="after")
     def _srmd_told_the_degradation(self):
         if self.srmd_blur_sigma is None:
-            sigma = "bicubic" if self.degrade == "bicubic" else (self.degrade_sigma or self.scale / 2)
+            sigma = "bicubic" if self.degrade == "bicubic" else gaussian_sigma(self.scale, self.degrade_sigma)
             object.__setattr__(self, "srmd_blur_sigma", sigma)
         return self
 
