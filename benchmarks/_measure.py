@@ -25,7 +25,10 @@ re-parenting to init) are not followed.
 
 from __future__ import annotations
 
+import datetime as _dt
+import json
 import os
+import platform
 import resource
 import subprocess
 import time
@@ -354,3 +357,14 @@ def scheduler_args(scheduler: str, workers: int, run_dir: Path) -> list[str]:
         spec.write_text(f"kind: local\nworkers: {workers}\n")
         return ["--cluster", str(spec)]
     return ["--workers", str(workers), "--scheduler", scheduler]
+
+
+def write_result(path: Path, benchmark: str, command: str, rows: list[dict], **extra) -> dict:
+    """Write a benchmark's JSON: its name, when, the command, the host (machine, cores, load
+    averages), ``extra`` fields and ``rows``; print where. Returns the document."""
+    doc = {"benchmark": benchmark, "when": _dt.datetime.now().isoformat(timespec="seconds"), "command": command,
+           "host": {"machine": platform.machine(), "cpus": os.cpu_count(), "load_avg": list(os.getloadavg())},
+           **extra, "rows": rows}
+    Path(path).write_text(json.dumps(doc, indent=1))
+    print(f"wrote {path}")
+    return doc

@@ -21,14 +21,14 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import datetime as _dt
-import json
-import os
-import platform
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from benchmarks._measure import write_result  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 CELLS = 576
@@ -67,12 +67,7 @@ def main(argv=None) -> int:
         r = rows[-1]
         print(f"{name}: {cells} cells, depth {depth}, {mean:.1f} candidates/cell: {best:.3f} s CPU, "
               f"{r['ns_per_candidate']:.1f} ns per candidate, {r['ns_per_cell']:.0f} ns per cell", flush=True)
-    result = {"benchmark": "aggregate", "when": _dt.datetime.now().isoformat(timespec="seconds"),
-              "command": "benchmarks/aggregate.py", "host": {"machine": platform.machine(), "cpus": os.cpu_count(),
-                                                             "load_avg": list(os.getloadavg())},
-              "rows": rows}
-    args.json.write_text(json.dumps(result, indent=1))
-    print(f"wrote {args.json}")
+    write_result(args.json, "aggregate", "benchmarks/aggregate.py", rows)
     return 0
 
 

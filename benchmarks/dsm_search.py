@@ -25,14 +25,15 @@ Writes ``benchmarks/results/dsm_search.json`` and prints the table. Wall times a
 from __future__ import annotations
 
 import argparse
-import datetime as _dt
-import json
 import os
-import platform
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from benchmarks._measure import write_result  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -109,11 +110,7 @@ def main(argv=None) -> int:
         r = rows[-1]
         print(f"{label}: NMAD {r['nmad_m']:.3f} m, RMSE {r['rmse_m']:.3f} m, > 10 m {r['gt10_pct']:.3f} %, "
               f"completeness {r['completeness'] * 100:.1f} %, {r['seconds']:.1f} s", flush=True)
-    result = {"benchmark": "dsm_search", "when": _dt.datetime.now().isoformat(timespec="seconds"),
-              "command": "benchmarks/dsm_search.py", "host": {"machine": platform.machine(), "cpus": os.cpu_count()},
-              "data": str(pair), "reference": str(reference), "rows": rows}
-    args.json.write_text(json.dumps(result, indent=1))
-    print(f"wrote {args.json}")
+    write_result(args.json, "dsm_search", "benchmarks/dsm_search.py", rows, data=str(pair), reference=str(reference))
     return 0
 
 
