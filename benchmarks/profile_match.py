@@ -132,16 +132,16 @@ def coarse_level(views, grid, h_range, levels, params) -> np.ndarray:
     arr = None
     with dask.config.set(scheduler="synchronous"):
         for level in range(levels - 1, 0, -1):
-            geom = _geometry(level_geometry, views, grid, level, h_range, params, level == levels - 1)
+            geom = _geometry(level_geometry, views, grid, level, h_range, params, levels)
             chunks = level_layout(geom.grid.shape, grid.chunk, params)
             arr = level_array(views, geom, chunks, h_range, params, None if arr is None else arr[0])
             arr = arr.persist()
         return np.asarray(arr[0].compute())
 
 
-def _geometry(level_geometry, views, grid, level, h_range, params, coarsest):
+def _geometry(level_geometry, views, grid, level, h_range, params, levels):
     try:
-        return level_geometry(views, grid, level, h_range, params, coarsest=coarsest)
+        return level_geometry(views, grid, level, h_range, params, levels)
     except TypeError:  # a package (--src) from before the coarser sweep step
         return level_geometry(views, grid, level, h_range, params)
 
@@ -154,7 +154,7 @@ def tasks(views, grid, h_range, levels, params, coarse1):
     halo = params.halo()
     out = {}
     top = levels - 1
-    geom = _geometry(level_geometry, views, grid, top, h_range, params, levels > 1)
+    geom = _geometry(level_geometry, views, grid, top, h_range, params, levels)
     chunks = level_layout(geom.grid.shape, grid.chunk, params)
     out["coarsest"] = (geom, (*_middle(chunks[0], halo), *_middle(chunks[1], halo)), None)
     if levels > 1:

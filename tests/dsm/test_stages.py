@@ -89,7 +89,7 @@ def test_staged_levels_give_the_plain_graphs_dsm(scene, tmp_path, levels, chunk,
     # same lattice heights in every cell, which cover `range / step` steps:
     # from range / step + 1 to range / step + 3 (exclusive) of them, as the
     # range's ends fall between lattice heights
-    coarsest = level_geometry(views, grid, levels - 1, h_range, params, coarsest=True)
+    coarsest = level_geometry(views, grid, levels - 1, h_range, params, levels)
     steps = (h_range[1] - h_range[0]) / coarsest.step
     top = reports[f"L{levels - 1}"]
     assert top["mean_candidates_per_cell"] == int(top["mean_candidates_per_cell"])

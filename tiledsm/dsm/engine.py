@@ -58,7 +58,7 @@ def dsm_from_views(
     fp = dsm_fingerprint(views, grid, h_range, levels, params)
     arr, staged = None, None
     for level in range(levels - 1, -1, -1):
-        geom = level_geometry(views, grid, level, h_range, params, coarsest=level == levels - 1)
+        geom = level_geometry(views, grid, level, h_range, params, levels)
         chunks = level_layout(geom.grid.shape, grid.chunk, params)
         if stage_dir is not None:
             from tiledsm.dsm.stages import stage_level

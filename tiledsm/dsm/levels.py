@@ -59,14 +59,14 @@ class LevelGeometry:
 
 
 def level_geometry(
-    views: Sequence[View], grid: GroundGrid, level: int, h_range, params: DSMParams, coarsest: bool = False
+    views: Sequence[View], grid: GroundGrid, level: int, h_range, params: DSMParams, levels: int = 1
 ) -> LevelGeometry:
-    """The :class:`LevelGeometry` of pyramid level ``level`` of ``grid``.
+    """The :class:`LevelGeometry` of level ``level`` of a pyramid of
+    ``levels`` levels over ``grid``.
 
-    ``coarsest``: the level is the coarsest of a pyramid of two or more
-    levels, the one that sweeps the whole height range; its step is then
-    ``params.sweep_step_factor`` times the level's own (see
-    :class:`~tiledsm.dsm.params.DSMParams`)."""
+    With two or more levels, the coarsest (``levels - 1``) sweeps the whole
+    height range with steps ``params.sweep_step_factor`` times its own
+    (see :class:`~tiledsm.dsm.params.DSMParams`)."""
     from tiledsm.match.sgvll import height_step, pair_weights
 
     lgrid = level_grid(grid, level)
@@ -75,7 +75,7 @@ def level_geometry(
     rpcs = [v.rpc.scaled(1.0 / f) if f > 1 else v.rpc for v in views]
     h = float(np.mean(h_range))
     step = float(height_step(rpcs, lon, lat, h, params.match))
-    if coarsest and level > 0:
+    if level > 0 and level == levels - 1:
         step *= params.sweep_step_factor
     return LevelGeometry(level, lgrid, step, pair_weights(rpcs, lon, lat, h))
 

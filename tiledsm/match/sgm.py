@@ -527,10 +527,10 @@ def winner_take_all(
 
 
 def sgm(cost: np.ndarray, P1: float, P2: float, base: np.ndarray | None = None, **kwargs):
-    """:func:`aggregate` then :func:`winner_take_all` (same arguments);
-    returns ``(index, smin, ratio, cbest)``."""
+    """:func:`aggregate` then :func:`winner_take_all` (same arguments; an
+    ``nvalid`` goes to both); returns ``(index, smin, ratio, cbest)``."""
     S = aggregate(cost, P1, P2, base=base, **kwargs)
-    return winner_take_all(S, cost)
+    return winner_take_all(S, cost, kwargs.get("nvalid"))
 
 
 @nb.njit(nogil=True, cache=True)

@@ -206,7 +206,7 @@ def dsm_levels(views, grid, h_range: tuple[float, float], levels: int, params) -
     out: list[LevelPlan] = []
     worst: MemoryEstimate | None = None
     for level in range(levels - 1, -1, -1):
-        geom = level_geometry(views, grid, level, h_range, params, coarsest=level == levels - 1)
+        geom = level_geometry(views, grid, level, h_range, params, levels)
         g = geom.grid
         chunks = level_layout(g.shape, grid.chunk, params)
         task = tuple(_largest_task(n, ch, halo) for n, ch in zip(g.shape, chunks))
