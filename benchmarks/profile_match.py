@@ -2,7 +2,7 @@
 
 Two tasks of a synthetic scene (``tiledsm.synth.make_scene``, GSD 0.5 m,
 B/H 0.4, made once into ``--work`` and reused), each run as a DSM task
-runs them (:func:`tiledsm.dsm.match_cells`: a chunk plus its halo, images
+runs them (:func:`tiledsm.dsm.match_cells`: the cells of its task window, images
 read and decimated inside):
 
 - ``coarsest``: the middle chunk of the coarsest pyramid level, which
@@ -96,11 +96,16 @@ def _grid_like(truth: str, chunk: int):
                       width=t.rio.width, height=t.rio.height, chunk=chunk)
 
 
-def _middle(chunks: tuple[int, ...], halo: int) -> tuple[int, int]:
-    """Cells (with halo, clipped) of the middle chunk of one axis."""
+def _middle(chunks: tuple[int, ...], params) -> tuple[int, int]:
+    """Cells a matching task computes for the middle chunk of one axis
+    (``task_window``; a package from before it: the chunk plus the halo)."""
     k = len(chunks) // 2
-    start = sum(chunks[:k])
-    return max(0, start - halo), min(sum(chunks), start + chunks[k] + halo)
+    try:
+        from tiledsm.dsm.levels import task_window
+    except ImportError:
+        start, halo = sum(chunks[:k]), params.halo()
+        return max(0, start - halo), min(sum(chunks), start + chunks[k] + halo)
+    return task_window(chunks, k, params)[2:]
 
 
 def _params(kernel: str | None, base):
@@ -151,17 +156,16 @@ def tasks(views, grid, h_range, levels, params, coarse1):
     from tiledsm.dsm import level_geometry, level_layout
     from tiledsm.match.pyramid import search_from_coarse, search_halo
 
-    halo = params.halo()
     out = {}
     top = levels - 1
     geom = _geometry(level_geometry, views, grid, top, h_range, params, levels)
     chunks = level_layout(geom.grid.shape, grid.chunk, params)
-    out["coarsest"] = (geom, (*_middle(chunks[0], halo), *_middle(chunks[1], halo)), None)
+    out["coarsest"] = (geom, (*_middle(chunks[0], params), *_middle(chunks[1], params)), None)
     if levels > 1:
         geom0 = level_geometry(views, grid, 0, h_range, params)
         chunks = level_layout(geom0.grid.shape, grid.chunk, params)
-        r0, r1 = _middle(chunks[0], halo)
-        c0, c1 = _middle(chunks[1], halo)
+        r0, r1 = _middle(chunks[0], params)
+        c0, c1 = _middle(chunks[1], params)
         depth = search_halo(params.search)
         # the coarse cells under the fine cells [r0, r1) x [c0, c1) (even starts), grown by depth
         pad = np.pad(coarse1, depth + 1, constant_values=np.nan)

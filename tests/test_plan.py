@@ -606,8 +606,9 @@ def test_plan_levels_match_the_built_graph(scene):
 
 
 def test_plan_task_sizes_and_candidates(scene):
-    """Largest task = chunk plus halo (clipped at the grid's edges);
-    candidates: the whole range at the coarsest level, the band (25) below."""
+    """Largest task = chunk grown to the paths' restart lines plus half a
+    window (clipped at the grid's edges); candidates: the whole range at the
+    coarsest level, the band (25) below."""
     from tiledsm.plan import plan_recipe
     from tiledsm.workflows.dsm import DSMRecipe
 
@@ -617,7 +618,8 @@ def test_plan_task_sizes_and_candidates(scene):
     plan = plan_recipe(r, scene.out_dir / "never")
     coarse, fine = plan.levels
     assert coarse.task_cells == (128, 128) and coarse.chunks == 1
-    # chunks [90, 166] on each axis (the last 76 cells merged): the second one plus a 64-cell halo on one side
-    assert fine.task_cells == (166 + 64, 166 + 64) and fine.chunks == 4
+    # chunks [90, 166] on each axis (the last 76 cells merged): the second one from the restart line
+    # at 64 less half a window (62) to the grid's edge
+    assert fine.task_cells == (256 - 62, 256 - 62) and fine.chunks == 4
     assert coarse.candidates == int(np.ceil(50 / coarse.step - 1e-9)) + 1
     assert fine.candidates == 25

@@ -61,3 +61,48 @@ def test_candidates_lie_on_the_scene_lattice_unless_relative(level0, relative):
     err = height - truth[r0 : r0 + N, c0 : c0 + N]
     assert np.isfinite(err).mean() > 0.7
     assert np.nanmedian(np.abs(err)) < 0.5
+
+
+def test_task_window_reaches_the_restart_lines_plus_half_a_window():
+    from tiledsm.dsm.levels import task_window
+
+    params = DSMParams(chunk=96)  # path period 64, window 5
+    chunks = (96, 96, 96, 96)
+    assert [task_window(chunks, k, params) for k in range(4)] == [
+        (0, 96, 0, 130), (96, 192, 62, 194), (192, 288, 190, 322), (288, 384, 254, 384)]
+    # chunks on the restart lines need only the window's cells
+    assert task_window((512, 512), 1, DSMParams(chunk=512)) == (512, 1024, 510, 1024)
+    assert DSMParams().halo() == 64  # the most a chunk on even cells needs: 62 + 2
+    no_restarts = DSMParams(match=dataclasses.replace(DSMParams().match, path_period=0))
+    assert task_window(chunks, 1, no_restarts) == (96, 192, 96 - 10, 192 + 10)
+
+
+def _global_band(truth: np.ndarray, step: float, rows: tuple[int, int], cols: tuple[int, int]) -> np.ndarray:
+    """:func:`_band` on whole-grid coordinates: a cell's band does not depend
+    on the block it is cut from."""
+    t = truth[rows[0] : rows[1], cols[0] : cols[1]].astype(np.float64)
+    yy, xx = np.mgrid[rows[0] : rows[1], cols[0] : cols[1]] / truth.shape[0]
+    h_ref = np.where(np.isfinite(t), np.nan_to_num(t) + 1.5 * step * (yy - xx), np.nan)
+    return np.stack([h_ref, h_ref - 3 * step, h_ref + 3 * step]).astype(np.float32)
+
+
+def test_a_task_window_matches_its_chunk_as_a_full_halo_does(level0):
+    """The chunk [96, 192)^2 matched over its task window [62, 194)^2 equals
+    the same chunk matched with a 64-cell halo on every side, bit for bit;
+    a window one cell short of the restart line's window differs."""
+    from tiledsm.dsm.levels import task_window
+
+    views, geom, h_range, params, truth = level0
+    start, stop, lo, hi = task_window((96, 96, 96, 96), 1, params)
+
+    def chunk(a: int, b: int) -> np.ndarray:
+        search = _global_band(truth, geom.step, (a, b), (a, b))
+        out = match_cells(views, geom, (a, b, a, b), search, tuple(h_range), params)
+        return out[:, start - a : stop - a, start - a : stop - a]
+
+    tight = chunk(lo, hi)
+    wide = chunk(start - 64, stop + 64)
+    assert np.isfinite(tight[0]).mean() > 0.8
+    np.testing.assert_array_equal(tight, wide)
+    short = chunk(lo + 1, hi)
+    assert not np.array_equal(short, wide, equal_nan=True)

@@ -215,8 +215,38 @@ def chunk_window(chunks: tuple[int, ...], index: int, halo: int) -> tuple[int, i
     return start, stop, max(0, start - halo), min(sum(chunks), stop + halo)
 
 
+def task_window(chunks: tuple[int, ...], index: int, params: DSMParams) -> tuple[int, int, int, int]:
+    """``(start, stop, lo, hi)``: chunk ``index`` of an axis chunked as
+    ``chunks`` and the cells ``[lo, hi)`` its matching task computes.
+
+    A cell's aggregated cost depends only on the costs between the
+    semi-global paths' restart lines around it (every ``path_period``
+    cells of the whole grid), and a cost on the samples of its correlation
+    window: the task reaches from the restart line at or before ``start``
+    to the one at or after ``stop``, plus half a window, clipped to the
+    axis. A chunk that starts and ends on restart lines (chunks of 512,
+    period 64) is matched with only the window's few extra cells instead
+    of a full halo of ``params.halo()`` on each side, with the same
+    result. Without restarts (period 0) the halo is ``params.halo()``.
+    """
+    n = sum(chunks)
+    start = sum(chunks[:index])
+    stop = start + chunks[index]
+    p = params.match.path_period
+    if p > 0:
+        half = params.match.window // 2
+        lo, hi = (start // p) * p - half, -(-stop // p) * p + half
+    else:
+        lo, hi = start - params.halo(), stop + params.halo()
+    lo, hi = max(0, lo), min(n, hi)
+    if start - lo > params.halo() or hi - stop > params.halo():
+        raise MatchingError(f"internal: task window {(lo, hi)} of chunk {(start, stop)} exceeds the halo {params.halo()}")
+    return start, stop, lo, hi
+
+
 def match_task(coarse, views, geom, chunks, halo, h_range, params, coarsest: bool, block_id=None, details=None) -> np.ndarray:
-    """One chunk of a level: match it plus its halo, return the chunk.
+    """One chunk of a level: match the cells of its :func:`task_window`,
+    return the chunk.
 
     ``coarse`` is the coarser level's heights under the chunk, grown by
     ``search_halo + halo / 2`` coarse cells (NaN beyond the grid;
@@ -228,8 +258,8 @@ def match_task(coarse, views, geom, chunks, halo, h_range, params, coarsest: boo
     chunk (0 where none was searched)."""
     from tiledsm.match.pyramid import search_from_coarse, search_halo
 
-    r0, r1, hr0, hr1 = chunk_window(chunks[0], block_id[-2], halo)
-    c0, c1, hc0, hc1 = chunk_window(chunks[1], block_id[-1], halo)
+    r0, r1, hr0, hr1 = task_window(chunks[0], block_id[-2], params)
+    c0, c1, hc0, hc1 = task_window(chunks[1], block_id[-1], params)
     search = None
     if not coarsest:
         depth = search_halo(params.search)

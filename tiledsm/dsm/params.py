@@ -84,9 +84,15 @@ class DSMParams:
             raise ValueError(f"DSMParams.sweep_step_factor must be >= 1, got {self.sweep_step_factor}")
 
     def halo(self) -> int:
-        """Halo in cells (even) of a matching task: the semi-global paths'
-        restart period (:attr:`~tiledsm.match.sgvll.SGVLLParams.path_period`,
-        which makes the aggregation exact in every chunking), and at least
-        twice the correlation window."""
-        h = max(2 * self.match.window, self.match.path_period)
+        """Most cells (even) a matching task reaches beyond its chunk
+        (:func:`tiledsm.dsm.levels.task_window`): back to the previous
+        restart line of the semi-global paths
+        (:attr:`~tiledsm.match.sgvll.SGVLLParams.path_period`, which makes
+        the aggregation exact in every chunking) plus half the correlation
+        window. Chunks start on even cells, so with an even period a chunk
+        edge lies at most ``period - 2`` cells past a restart line. Without
+        restarts (period 0): twice the correlation window."""
+        p = self.match.path_period
+        reach = p - 2 + p % 2 + self.match.window // 2 if p > 0 else 2 * self.match.window
+        h = max(2 * self.match.window, reach)
         return h + h % 2

@@ -164,13 +164,15 @@ def estimate_worker_memory(
     return MemoryEstimate(int(baseline) + max(matching, reading), int(baseline), volume_bytes, matching, reading)
 
 
-def _largest_task(n: int, chunks: Sequence[int], halo: int) -> int:
-    """Longest chunk-plus-halo extent along an axis of ``n`` cells (the
-    halo is clipped at the axis ends, as the matching tasks clip it)."""
-    start, best = 0, 0
-    for c in chunks:
-        best = max(best, min(n, start + c + halo) - max(0, start - halo))
-        start += c
+def _largest_task(chunks: Sequence[int], params) -> int:
+    """Longest extent along an axis of the cells a matching task computes
+    (:func:`tiledsm.dsm.levels.task_window`)."""
+    from tiledsm.dsm.levels import task_window
+
+    best = 0
+    for index in range(len(chunks)):
+        _, _, lo, hi = task_window(tuple(chunks), index, params)
+        best = max(best, hi - lo)
     return best
 
 
@@ -196,7 +198,6 @@ def dsm_levels(views, grid, h_range: tuple[float, float], levels: int, params) -
     from tiledsm.dsm import level_geometry, level_layout
     from tiledsm.geometry.footprint import image_window
 
-    halo = params.halo()
     itemsize = 1
     for v in views:
         with rasterio.open(v.path) as src:
@@ -209,7 +210,7 @@ def dsm_levels(views, grid, h_range: tuple[float, float], levels: int, params) -
         geom = level_geometry(views, grid, level, h_range, params, levels)
         g = geom.grid
         chunks = level_layout(g.shape, grid.chunk, params)
-        task = tuple(_largest_task(n, ch, halo) for n, ch in zip(g.shape, chunks))
+        task = tuple(_largest_task(ch, params) for ch in chunks)
         full = math.ceil(span / geom.step - 1e-9) + 1
         nd = full if level == levels - 1 else min(full, fine_band)
         r0, c0 = (g.height - task[0]) // 2, (g.width - task[1]) // 2
