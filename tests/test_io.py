@@ -378,6 +378,8 @@ def test_store_unwritten_cells_are_fill_and_incompatible_partial_discarded(tmp_p
     g = _grid(chunk=100)
     s = create_store(tmp_path / "a.zarr", g)
     s.write_block(0, 0, np.zeros((100, 100), np.float32))
+    assert s.blocks_done([(0, 0)]) and not s.blocks_done([(0, 0), (0, 1)]) and s.blocks_done([])
+    assert s.pending()[0] == (0, 1) and not s.done()[0, 1]
     part = open_product(s.partial_path, allow_incomplete=True)["data"].values
     assert np.all(part[:100, :100] == 0) and np.all(np.isnan(part[100:])) and np.all(np.isnan(part[:, 100:]))
     # other chunking: the partial store is not reusable, it is rebuilt

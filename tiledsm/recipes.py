@@ -110,7 +110,9 @@ class MatchSpec(StrictModel):
         try:
             params = TypeAdapter(SGVLLParams).validate_python(dict(value))
         except ValidationError as exc:
-            raise ValueError("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())) from None
+            # the dataclass's own checks come with no field: their message alone
+            raise ValueError("; ".join((f"{'.'.join(map(str, e['loc']))}: " if e["loc"] else "")
+                                       + e["msg"].removeprefix("Value error, ") for e in exc.errors())) from None
         except (TypeError, ValueError) as exc:  # the dataclass's own checks
             raise ValueError(str(exc)) from None
         return dataclasses.asdict(params)

@@ -138,3 +138,22 @@ def scene_grid(scene: Scene, margin_m=8.0, res=GSD):
     return gx, gy
 
 
+
+
+def band_with_holes(scene: Scene, rows: slice, cols: slice, hole: tuple[slice, slice], seed: int = 4):
+    """A finer level's search on cells ``rows x cols`` of :func:`scene_grid`:
+    the truth +- 3 m, one cell in ten +- 9 m (a coarse hole), the cells
+    ``hole`` (block indices) not searched. Returns ``gx, gy, truth, lo, hi,
+    kw`` with ``kw`` the ``match_block`` arguments that place the block on
+    the whole grid (``origin``, ``axes``) and its reference surface."""
+    gx, gy = scene_grid(scene)
+    gx, gy = gx[cols], gy[rows]
+    X, Y = np.meshgrid(gx, gy)
+    truth = scene.height(X, Y)
+    rng = np.random.default_rng(seed)
+    margin = np.where(rng.random(truth.shape) < 0.1, 9.0, 3.0)
+    lo, hi = truth - margin, truth + margin
+    lo[hole] = np.nan
+    r0, c0 = rows.start, cols.start
+    kw = {"origin": (r0, c0), "h_ref": truth + 0.3, "axes": (gx[0] - c0 * GSD, gy[0] + r0 * GSD, GSD, -GSD)}
+    return gx, gy, truth, lo, hi, kw

@@ -12,7 +12,7 @@ from tiledsm.match.sgm import aggregate
 from tiledsm.match.sgvll import SGVLLParams, height_step, match_block
 from tiledsm.match.sweep import track
 
-from match_synthetic import CRS, make_scene, scene_grid
+from match_synthetic import CRS, band_with_holes, make_scene, scene_grid
 
 
 def _both(images, rpcs, gx, gy, lo, hi, **kw):
@@ -51,16 +51,8 @@ def test_fast_equals_reference_band_with_holes(synthetic_scene):
     holes) and some cells not searched: the fast sweep samples only what
     the windows need, and scores the same."""
     sc = synthetic_scene
-    gx, gy = scene_grid(sc)
-    gx, gy = gx[10:130], gy[20:120]
-    X, Y = np.meshgrid(gx, gy)
-    truth = sc.height(X, Y)
-    rng = np.random.default_rng(4)
-    margin = np.where(rng.random(truth.shape) < 0.1, 9.0, 3.0)
-    lo, hi = truth - margin, truth + margin
-    lo[40:50, 60:75] = np.nan  # not searched
-    out = _both(sc.images, sc.rpcs, gx, gy, lo, hi, origin=(20, 10), h_ref=truth + 0.3,
-                axes=(gx[0] - 10 * 0.5, gy[0] + 20 * 0.5, 0.5, -0.5))
+    gx, gy, _, lo, hi, kw = band_with_holes(sc, slice(20, 120), slice(10, 130), (slice(40, 50), slice(60, 75)))
+    out = _both(sc.images, sc.rpcs, gx, gy, lo, hi, **kw)
     _assert_same(out)
     fast, ref = out["fast"][2], out["reference"][2]
     # measured: 13.8 candidates per cell, 30 at most; 0.934x the samples

@@ -28,6 +28,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--levels", type=int, default=None, help="pyramid levels (default: from the height range)")
     p.add_argument("--height-range", type=float, nargs=2, default=None, metavar=("HMIN", "HMAX"), help="ellipsoidal metres; default: from tie points")
     p.add_argument("--reference", default=None, help="reference DSM for metrics (same vertical datum as the output)")
+    p.add_argument("--device", default="cpu",
+                   help="where matching runs: cpu (the compiled kernel, default) or a torch device such as cuda, "
+                        "cuda:1 (the torch kernel: cost volume and aggregation on that device)")
     p.add_argument("--geoid", default=None, help="geoid grid (e.g. egm96_15.gtx): write heights above the geoid instead of the WGS84 ellipsoid")
     add_cluster_arguments(p, default_scheduler="threads")
     add_overwrite_argument(p)
@@ -39,7 +42,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 OPTION_OF_FIELD = {
     "input.images": "IMAGES", "input.reference": "--reference", "grid.like": "--like", "grid.crs": "--crs",
     "grid.resolution": "--resolution", "grid.bounds": "--bounds", "grid.chunk": "--chunk", "grid": "--like/--bounds",
-    "match.levels": "--levels", "match.height_range": "--height-range", "output.geoid": "--geoid",
+    "match.levels": "--levels", "match.height_range": "--height-range", "match.params": "--device",
+    "output.geoid": "--geoid",
 }
 
 
@@ -65,7 +69,8 @@ def dsm_recipe(args: argparse.Namespace):
             "name": Path(args.out).name,
             "input": {"images": [_absolute(p) for p in args.images], "reference": _absolute(args.reference)},
             "grid": {k: v for k, v in grid.items() if v is not None},
-            "match": {"levels": args.levels, "height_range": args.height_range},
+            "match": {"levels": args.levels, "height_range": args.height_range,
+                      "params": {} if args.device == "cpu" else {"kernel": "torch", "device": args.device}},
             "output": {"geoid": _absolute(args.geoid)},
         })
     except ValidationError as exc:

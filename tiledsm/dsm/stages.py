@@ -172,8 +172,7 @@ def _staged_task(_ready, _coarse_ready, i, j, *, staged_in, store, views, geom, 
     r0, r1, _, _ = chunk_window(chunks[0], i, 0)
     c0, c1, _, _ = chunk_window(chunks[1], j, 0)
     blocks = _blocks(store, r0, r1, c0, c1)
-    done = store.done()
-    if all(done[b] for b in blocks):
+    if store.blocks_done(blocks):
         return False
     import zarr
 

@@ -104,13 +104,19 @@ def write_zarr(
     return final
 
 
-def _read_progress(path: Path) -> np.ndarray | None:
-    """Completion markers of a resumable store, or None for a plain store."""
+def _progress_array(path: Path):
+    """Completion markers of a resumable store (read-only), None if plain."""
     import zarr
 
     if not (Path(path) / _PROGRESS / "done" / "zarr.json").is_file():
         return None
-    return np.asarray(zarr.open_array(store=str(path), path=f"{_PROGRESS}/done", mode="r")[...]).astype(bool)
+    return zarr.open_array(store=str(path), path=f"{_PROGRESS}/done", mode="r")
+
+
+def _read_progress(path: Path) -> np.ndarray | None:
+    """Completion markers of a resumable store, or None for a plain store."""
+    arr = _progress_array(path)
+    return None if arr is None else np.asarray(arr[...]).astype(bool)
 
 
 def open_product(
@@ -241,6 +247,13 @@ class ChunkStore:
         if d is None:
             raise InputFileError(f"{self.path}: not a resumable store (no {_PROGRESS}/done)")
         return d
+
+    def blocks_done(self, blocks: Sequence[tuple[int, int]]) -> bool:
+        """Whether every block of ``blocks`` is written (reads only their markers)."""
+        arr = _progress_array(self.live_path)
+        if arr is None:
+            raise InputFileError(f"{self.path}: not a resumable store (no {_PROGRESS}/done)")
+        return all(bool(arr[i, j]) for i, j in blocks)
 
     def pending(self) -> list[tuple[int, int]]:
         """Blocks still to write, row-major."""

@@ -200,7 +200,7 @@ def _fill_invalid(cost, value):
     return out
 
 
-def _checked(cost, P1: float, P2: float, base, nvalid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def checked_volume(cost, P1: float, P2: float, base, nvalid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The volume as contiguous float32, ``base`` as int64 (zeros when
     ``None``) and ``nvalid`` as int64 clipped to ``0..nd`` (``nd`` when
     ``None``), after checking shapes and penalties."""
@@ -279,7 +279,7 @@ def aggregate(
         ``(ny, nx, nd)`` float32 aggregated cost ``S`` (sum of 8 paths);
         +inf for absent candidates.
     """
-    cost, b, n = _checked(cost, P1, P2, base, nvalid)
+    cost, b, n = checked_volume(cost, P1, P2, base, nvalid)
     gi0, gj0, period = int(origin[0]), int(origin[1]), int(restart_period)
     if fast and guide is None:
         S = np.zeros(cost.shape, np.float32)

@@ -33,7 +33,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Sequence
 
 import cv2
 import numba as nb
@@ -44,6 +44,8 @@ from tiledsm.geometry import RPC
 from tiledsm.match.cost import mean_zncc_cost
 from tiledsm.match.sampling import sample_view
 from tiledsm.match.sgm import aggregate, remove_speckles, winner_take_all
+from tiledsm.match import torch_kernel
+from tiledsm.match.kernels import KERNELS, MatchKernel, register_kernel
 from tiledsm.match.sweep import MASKED_COST, cost_volume
 
 __all__ = [
@@ -130,8 +132,14 @@ class SGVLLParams:
     kernel : str
         Implementation of the sweep and aggregation (:data:`KERNELS`):
         ``"fast"`` (:mod:`tiledsm.match.sweep`: compiled candidate loop,
-        only the candidates each cell needs) or ``"reference"`` (the plain
-        per-height sweep it is tested against).
+        only the candidates each cell needs), ``"reference"`` (the plain
+        per-height sweep it is tested against) or ``"torch"``
+        (:mod:`tiledsm.match.torch_kernel`: the fast kernel's arithmetic as
+        tensor operations, on ``device``).
+    device : str
+        Where the ``"torch"`` kernel runs: ``"cpu"``, ``"cuda"``,
+        ``"cuda:1"``... (``tiledsm dsm --device``); the other kernels run
+        on the CPU only.
     path_period : int
         Semi-global paths restart every ``path_period`` cells on lines of
         the whole grid (:func:`tiledsm.match.sgm.aggregate`): each cell's
@@ -163,10 +171,15 @@ class SGVLLParams:
     weight_pairs: bool = True
     path_period: int = 64
     kernel: str = "fast"
+    device: str = "cpu"
 
     def __post_init__(self) -> None:
         if self.kernel not in KERNELS:
             raise ValueError(f"SGVLLParams.kernel must be one of {sorted(KERNELS)}, got {self.kernel!r}")
+        if self.device != "cpu" and not KERNELS[self.kernel].on_device:
+            raise ValueError(f"SGVLLParams.device {self.device!r}: the {self.kernel!r} kernel runs on the CPU only")
+        if self.device != "cpu":
+            torch_kernel.check_device(self.device)
         if self.window < 1 or self.window % 2 == 0:
             raise ValueError(f"SGVLLParams.window must be odd and >= 1, got {self.window}")
         if not 0 <= self.P1 <= self.P2:
@@ -285,38 +298,9 @@ def cost_volume_reference(
     return vol
 
 
-@dataclass(frozen=True)
-class MatchKernel:
-    """One implementation of the SGVLL kernel's heavy steps.
-
-    Attributes
-    ----------
-    cost_volume : callable
-        ``(imgs, lat_r, lat_c, stride, k0, dh, href, step, origin, nodes0,
-        win_r, win_c, cubic, base, nvalid, half, pair_w, details=None) ->
-        vol`` (see :func:`tiledsm.match.sweep.cost_volume`).
-    aggregate : callable
-        Semi-global aggregation, the signature of
-        :func:`tiledsm.match.sgm.aggregate`.
-    """
-
-    cost_volume: Callable
-    aggregate: Callable
-
-
-#: matching kernels by name (:attr:`SGVLLParams.kernel`); see :func:`register_kernel`
-KERNELS: dict[str, MatchKernel] = {}
-
-
-def register_kernel(name: str, kernel: MatchKernel) -> None:
-    """Add a kernel to :data:`KERNELS` (a name is taken once)."""
-    if name in KERNELS:
-        raise ValueError(f"matching kernel {name!r} is already registered")
-    KERNELS[name] = kernel
-
-
 register_kernel("reference", MatchKernel(cost_volume_reference, aggregate))
 register_kernel("fast", MatchKernel(cost_volume, functools.partial(aggregate, fast=True)))
+register_kernel("torch", MatchKernel(torch_kernel.cost_volume, torch_kernel.aggregate, on_device=True))
 
 
 def pair_weights(rpcs: Sequence[RPC], lon: float, lat: float, h: float) -> np.ndarray:
@@ -546,7 +530,7 @@ def match_block(
     else:
         pair_w = (_parallax(rpcs, float(lon.mean()), float(lat.mean()), (h0 + h1) / 2) ** 2).astype(np.float32)
     t_start = time.perf_counter()
-    kernel = KERNELS[params.kernel]
+    kernel = KERNELS[params.kernel].for_device(params.device)
     sweep: dict = {}
     vol = kernel.cost_volume(
         imgs, lat_r, lat_c, s, k0, dh, href, step, (gi0, gj0), (n0i, n0j), win_r, win_c,

@@ -377,6 +377,22 @@ def _zncc(s_a, s_b, s_aa, s_bb, s_ab, inv_n, eps):
     return np.float32(1.0 - c) if good else np.float32(np.nan)
 
 
+@nb.njit(nogil=True, cache=True)
+def _empty_volume(nvalid, nd):
+    """``(ny, nx, nd)`` float32: NaN (invalid until computed) for the
+    candidates ``k < nvalid`` of each cell, :data:`MASKED_COST` beyond."""
+    ny, nx = nvalid.shape
+    vol = np.empty((ny, nx, nd), np.float32)
+    nan = np.float32(np.nan)
+    for i in range(ny):
+        for j in range(nx):
+            n = nvalid[i, j]
+            v = vol[i, j]
+            for k in range(nd):
+                v[k] = nan if k < n else MASKED_COST
+    return vol
+
+
 def cost_volume(
     imgs, lat_r, lat_c, stride, k0, dh, href, step, origin, nodes0, win_r, win_c, cubic, base, nvalid, half,
     pair_w=None, details: dict | None = None, eps: float = 1e-6,
@@ -423,10 +439,7 @@ def cost_volume(
     nd = max(1, int(nvalid.max()))
     base = np.ascontiguousarray(base, np.int64)
     nvalid = np.ascontiguousarray(nvalid, np.int64)
-    vol = np.full((ny, nx, nd), MASKED_COST, np.float32)
-    # candidates whose window is not computed below stay invalid
-    for k in range(nd):
-        vol[:, :, k][k < nvalid] = np.nan
+    vol = _empty_volume(nvalid, nd)
     lo, hi = sample_hull(base, nvalid, half)
     span = np.maximum(hi - lo + 1, 0)
     ns = int(span.max()) if span.size else 0

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -147,10 +148,13 @@ def write_dsm_products(
 
     stored = open_product(out / "dsm.zarr")
     t1 = time.perf_counter()
-    if cog:
-        write_cog(stored["height"], out / "dsm.tif")
-    if quicklook:
-        make_quicklook(stored["height"], out / "dsm.png", kind="height", title="DSM (m, ellipsoidal)")
+    # the COG is written by GDAL (the GIL released) while the quick-look is drawn
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        written = pool.submit(write_cog, stored["height"], out / "dsm.tif") if cog else None
+        if quicklook:
+            make_quicklook(stored["height"], out / "dsm.png", kind="height", title="DSM (m, ellipsoidal)")
+        if written is not None:
+            written.result()
     timings["export_s"] = time.perf_counter() - t1
     return timings
 

@@ -1,0 +1,55 @@
+"""The registry of SGVLL matching kernels: implementations of the heavy
+steps of :func:`tiledsm.match.sgvll.match_block` (cost volume and
+semi-global aggregation), chosen by :attr:`SGVLLParams.kernel
+<tiledsm.match.sgvll.SGVLLParams>`. The kernels themselves are registered
+by :mod:`tiledsm.match.sgvll`."""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import Callable
+
+__all__ = ["KERNELS", "MatchKernel", "register_kernel"]
+
+
+@dataclass(frozen=True)
+class MatchKernel:
+    """One implementation of the SGVLL kernel's heavy steps.
+
+    Attributes
+    ----------
+    cost_volume : callable
+        ``(imgs, lat_r, lat_c, stride, k0, dh, href, step, origin, nodes0,
+        win_r, win_c, cubic, base, nvalid, half, pair_w, details=None) ->
+        vol`` (see :func:`tiledsm.match.sweep.cost_volume`).
+    aggregate : callable
+        Semi-global aggregation, the signature of
+        :func:`tiledsm.match.sgm.aggregate`.
+    on_device : bool
+        Both steps take a torch ``device=`` (:meth:`for_device`); the
+        others run on the CPU only.
+    """
+
+    cost_volume: Callable
+    aggregate: Callable
+    on_device: bool = False
+
+    def for_device(self, device: str) -> MatchKernel:
+        """The kernel with its steps bound to ``device`` (itself when it
+        runs on the CPU only)."""
+        if not self.on_device:
+            return self
+        return MatchKernel(functools.partial(self.cost_volume, device=device),
+                           functools.partial(self.aggregate, device=device))
+
+
+#: matching kernels by name (:attr:`SGVLLParams.kernel`); see :func:`register_kernel`
+KERNELS: dict[str, MatchKernel] = {}
+
+
+def register_kernel(name: str, kernel: MatchKernel) -> None:
+    """Add a kernel to :data:`KERNELS` (a name is taken once)."""
+    if name in KERNELS:
+        raise ValueError(f"matching kernel {name!r} is already registered")
+    KERNELS[name] = kernel
