@@ -72,43 +72,53 @@ def run_dsm(
         plan = plan_recipe(recipe, out, cluster, overwrite=overwrite, limits=limits)
     prep = plan.prepared
     reference, report = prep.reference, prep.report
+    scores: dict = {}
+    warnings = list(plan.warnings)
+
+    def score() -> None:
+        """Completeness and the metrics against the reference, read from
+        the finished store while its exports are written."""
+        from tiledsm.io import open_product
+
+        height = open_product(out / "dsm.zarr")["height"]
+        # lazy: the client never holds the whole DSM for this
+        scores["completeness"] = float(np.isfinite(height.data).mean().compute())
+        scores["completeness_in_footprint"] = footprint_completeness(height, prep.views, prep.h_range)
+        if scores["completeness_in_footprint"] < LOW_COMPLETENESS:
+            warnings.append(
+                f"low completeness: {scores['completeness_in_footprint']:.0%} of the cells seen by every view have "
+                f"a height (expected >= {LOW_COMPLETENESS:.0%}; check the height range and the images' overlap)"
+            )
+            log.warning(warnings[-1])
+        if reference:
+            # chunk by chunk: the client never holds the whole DSM or reference
+            from tiledsm.compare.accuracy import reference_accuracy
+
+            scores["reference"] = str(reference)
+            scores["vs_reference"], error = reference_accuracy(height, reference, chunks=grid_chunk(height),
+                                                               coregister=True)
+            if recipe.output.quicklook:
+                from tiledsm.quicklook import quicklook
+
+                r0, r1, c0, c1 = error.attrs["window"]
+                quicklook(error, out / "dsm_error.png", kind="difference", title="DSM - reference (m)",
+                          dsm=height[r0:r1, c0:c1])
+            if truth_mask is not None:
+                scores["vs_reference_visible"], _ = reference_accuracy(
+                    height, reference, truth_mask, chunks=grid_chunk(height)
+                )
+
     timings = write_dsm_products(
-        prep.ds, out, cluster=cluster, cog=recipe.output.cog, quicklook=recipe.output.quicklook, overwrite=overwrite
+        prep.ds, out, cluster=cluster, cog=recipe.output.cog, quicklook=recipe.output.quicklook, overwrite=overwrite,
+        alongside=score,
     )
     metrics: dict = {"pipeline": "dsm", "report": report, "timings": timings}
     if orient_doc is not None:
         metrics["orient"] = orient_doc
-    from tiledsm.io import open_product
-
-    height = open_product(out / "dsm.zarr")["height"]
-    # lazy: the client never holds the whole DSM for this
-    metrics["completeness"] = float(np.isfinite(height.data).mean().compute())
-    metrics["completeness_in_footprint"] = footprint_completeness(height, prep.views, prep.h_range)
-    warnings = list(plan.warnings)
-    if metrics["completeness_in_footprint"] < LOW_COMPLETENESS:
-        warnings.append(
-            f"low completeness: {metrics['completeness_in_footprint']:.0%} of the cells seen by every view have a "
-            f"height (expected >= {LOW_COMPLETENESS:.0%}; check the height range and the images' overlap)"
-        )
-        log.warning(warnings[-1])
-    if reference:
-        # chunk by chunk: the client never holds the whole DSM or reference
-        from tiledsm.compare.accuracy import reference_accuracy
-
-        metrics["reference"] = str(reference)
-        metrics["vs_reference"], error = reference_accuracy(height, reference, chunks=grid_chunk(height), coregister=True)
-        if recipe.output.quicklook:
-            from tiledsm.quicklook import quicklook
-
-            r0, r1, c0, c1 = error.attrs["window"]
-            quicklook(error, out / "dsm_error.png", kind="difference", title="DSM - reference (m)", dsm=height[r0:r1, c0:c1])
-        if truth_mask is not None:
-            metrics["vs_reference_visible"], _ = reference_accuracy(
-                height, reference, truth_mask, chunks=grid_chunk(height)
-            )
+    metrics.update(scores)
     metrics["warnings"] = warnings
     metrics["timings"]["total_s"] = time.perf_counter() - t_start
-    metrics["output_mpx_per_s"] = height.size / 1e6 / max(timings["match_s"], 1e-9)
+    metrics["output_mpx_per_s"] = prep.ds["height"].size / 1e6 / max(timings["match_s"], 1e-9)
     write_json(metrics, out / "metrics.json")
     log.info("metrics: %s", json.dumps(metrics))
     return metrics
