@@ -230,8 +230,7 @@ def task_window(chunks: tuple[int, ...], index: int, params: DSMParams) -> tuple
     result. Without restarts (period 0) the halo is ``params.halo()``.
     """
     n = sum(chunks)
-    start = sum(chunks[:index])
-    stop = start + chunks[index]
+    start, stop, _, _ = chunk_window(chunks, index, 0)
     p = params.match.path_period
     if p > 0:
         half = params.match.window // 2
@@ -244,12 +243,12 @@ def task_window(chunks: tuple[int, ...], index: int, params: DSMParams) -> tuple
     return start, stop, lo, hi
 
 
-def match_task(coarse, views, geom, chunks, halo, h_range, params, coarsest: bool, block_id=None, details=None) -> np.ndarray:
+def match_task(coarse, views, geom, chunks, h_range, params, coarsest: bool, block_id=None, details=None) -> np.ndarray:
     """One chunk of a level: match the cells of its :func:`task_window`,
     return the chunk.
 
     ``coarse`` is the coarser level's heights under the chunk, grown by
-    ``search_halo + halo / 2`` coarse cells (NaN beyond the grid;
+    :func:`coarse_depth` coarse cells (NaN beyond the grid;
     :func:`coarse_blocks`): the chunk's search band over its halo is
     derived here (:func:`~tiledsm.match.pyramid.search_from_coarse`), which
     spares the graph a second overlapped array. At the coarsest level it
@@ -258,6 +257,7 @@ def match_task(coarse, views, geom, chunks, halo, h_range, params, coarsest: boo
     chunk (0 where none was searched)."""
     from tiledsm.match.pyramid import search_from_coarse, search_halo
 
+    halo = params.halo()  # the coarse blocks' reach, in finer cells (coarse_depth)
     r0, r1, hr0, hr1 = task_window(chunks[0], block_id[-2], params)
     c0, c1, hc0, hc1 = task_window(chunks[1], block_id[-1], params)
     search = None
@@ -363,18 +363,17 @@ def despeckle(matched: da.Array, geom: LevelGeometry, params: DSMParams) -> da.A
 
 def level_array(views, geom: LevelGeometry, chunks, h_range, params: DSMParams, coarse: da.Array | None) -> da.Array:
     """Lazy ``(2, H, W)`` heights and confidence of one pyramid level,
-    chunked as ``chunks``: one task per chunk, each matching its chunk plus
-    ``params.halo()`` cells (searching around ``coarse``, the coarser
+    chunked as ``chunks``: one task per chunk, each matching the cells of
+    its :func:`task_window` (searching around ``coarse``, the coarser
     level's heights, or the whole height range when ``None``) and
     returning the chunk; then :func:`despeckle`."""
-    halo = params.halo()
     coarsest = coarse is None
     if coarsest:
         blocks = da.zeros((1, *geom.grid.shape), chunks=((1,), *chunks), dtype=np.uint8)
     else:
         blocks = coarse_blocks(coarse, chunks, coarse_depth(params))
     matched = da.map_blocks(
-        match_task, blocks, views, geom, chunks, halo, tuple(h_range), params, coarsest,
+        match_task, blocks, views, geom, chunks, tuple(h_range), params, coarsest,
         chunks=((2,), *chunks), dtype=np.float32, name=f"match-L{geom.level}", new_axis=None if coarsest else 0,
     )
     return despeckle(matched, geom, params)

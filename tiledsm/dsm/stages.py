@@ -164,7 +164,7 @@ def _blocks(store: ChunkStore, r0: int, r1: int, c0: int, c1: int) -> list[tuple
     return [(bi, bj) for bi in range(r0 // cy, -(-r1 // cy)) for bj in range(c0 // cx, -(-c1 // cx))]
 
 
-def _staged_task(_ready, _coarse_ready, i, j, *, staged_in, store, views, geom, chunks, halo, h_range, params) -> bool:
+def _staged_task(_ready, _coarse_ready, i, j, *, staged_in, store, views, geom, chunks, h_range, params) -> bool:
     """Match chunk ``(i, j)`` of a level and write it into ``store``,
     unless an earlier run did; return whether it was computed."""
     from tiledsm.dsm.levels import chunk_window
@@ -178,7 +178,7 @@ def _staged_task(_ready, _coarse_ready, i, j, *, staged_in, store, views, geom, 
 
     coarse = None if staged_in is None else coarse_window(staged_in, chunks, i, j, params)
     details: dict = {}
-    res = match_task(coarse, views, geom, chunks, halo, h_range, params, staged_in is None, block_id=(i, j), details=details)
+    res = match_task(coarse, views, geom, chunks, h_range, params, staged_in is None, block_id=(i, j), details=details)
     where = str(store.live_path)
     for bi, bj in blocks:
         w0, w1, v0, v1 = store.block_window(bi, bj)
@@ -244,7 +244,7 @@ def stage_level(
     setup_key, name, done_key = f"stage-setup-L{geom.level}", f"match-L{geom.level}", f"stage-done-L{geom.level}"
     fn = partial(
         _staged_task, staged_in=None if coarser is None else coarser.level, store=store, views=list(views), geom=geom,
-        chunks=chunks, halo=params.halo(), h_range=tuple(h_range), params=params,
+        chunks=chunks, h_range=tuple(h_range), params=params,
     )
     prev = None if coarser is None else coarser.done_key
     keys = [(name, i, j) for i in range(len(chunks[0])) for j in range(len(chunks[1]))]

@@ -176,9 +176,9 @@ class SGVLLParams:
     def __post_init__(self) -> None:
         if self.kernel not in KERNELS:
             raise ValueError(f"SGVLLParams.kernel must be one of {sorted(KERNELS)}, got {self.kernel!r}")
-        if self.device != "cpu" and not KERNELS[self.kernel].on_device:
-            raise ValueError(f"SGVLLParams.device {self.device!r}: the {self.kernel!r} kernel runs on the CPU only")
         if self.device != "cpu":
+            if not KERNELS[self.kernel].on_device:
+                raise ValueError(f"SGVLLParams.device {self.device!r}: the {self.kernel!r} kernel runs on the CPU only")
             torch_kernel.check_device(self.device)
         if self.window < 1 or self.window % 2 == 0:
             raise ValueError(f"SGVLLParams.window must be odd and >= 1, got {self.window}")

@@ -46,7 +46,7 @@ import numpy as np
 
 from tiledsm.match.sampling import CUBIC_A, height_segment, interpolate, keys_far, keys_near, lattice_cell, row4
 
-__all__ = ["MASKED_COST", "cost_volume", "sample_hull", "track"]
+__all__ = ["MASKED_COST", "cost_volume", "empty_volume", "sample_hull", "sample_plan", "track", "view_pairs"]
 
 #: cost of candidates that lie outside a cell's own height range (never chosen)
 MASKED_COST = np.float32(4.0)
@@ -378,7 +378,7 @@ def _zncc(s_a, s_b, s_aa, s_bb, s_ab, inv_n, eps):
 
 
 @nb.njit(nogil=True, cache=True)
-def _empty_volume(nvalid, nd):
+def empty_volume(nvalid, nd):
     """``(ny, nx, nd)`` float32: NaN (invalid until computed) for the
     candidates ``k < nvalid`` of each cell, :data:`MASKED_COST` beyond."""
     ny, nx = nvalid.shape
@@ -391,6 +391,25 @@ def _empty_volume(nvalid, nd):
             for k in range(nd):
                 v[k] = nan if k < n else MASKED_COST
     return vol
+
+
+def sample_plan(base, nvalid, half: int, details: dict | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(lo, hi, ns)``: the labels each cell is sampled at
+    (:func:`sample_hull`) and the most of any cell; ``details``, if given,
+    gets ``n_samples``, the (cell, label) samples per view."""
+    lo, hi = sample_hull(base, nvalid, half)
+    span = np.maximum(hi - lo + 1, 0)
+    if details is not None:
+        details["n_samples"] = int(span.sum())
+    return lo, hi, int(span.max()) if span.size else 0
+
+
+def view_pairs(nv: int, pair_w=None) -> tuple[list[tuple[int, int]], np.ndarray]:
+    """The view pairs ``(u, v)``, ``u < v``, of ``nv`` views and their
+    float32 weights (the upper triangle of ``pair_w``; ones without it)."""
+    pairs = [(u, v) for u in range(nv) for v in range(u + 1, nv)]
+    w = np.ones((nv, nv), np.float32) if pair_w is None else np.asarray(pair_w, np.float32)
+    return pairs, np.array([w[u, v] for u, v in pairs], np.float32)
 
 
 def cost_volume(
@@ -439,19 +458,13 @@ def cost_volume(
     nd = max(1, int(nvalid.max()))
     base = np.ascontiguousarray(base, np.int64)
     nvalid = np.ascontiguousarray(nvalid, np.int64)
-    vol = _empty_volume(nvalid, nd)
-    lo, hi = sample_hull(base, nvalid, half)
-    span = np.maximum(hi - lo + 1, 0)
-    ns = int(span.max()) if span.size else 0
-    if details is not None:
-        details["n_samples"] = int(span.sum())
+    vol = empty_volume(nvalid, nd)
+    lo, hi, ns = sample_plan(base, nvalid, half, details)
     if ns <= 0:
         return vol
-    pairs = [(u, v) for u in range(nv) for v in range(u + 1, nv)]
+    pairs, pw = view_pairs(nv, pair_w)
     pair_u = np.array([p[0] for p in pairs], np.int64)
     pair_v = np.array([p[1] for p in pairs], np.int64)
-    w = np.ones((nv, nv), np.float32) if pair_w is None else np.asarray(pair_w, np.float32)
-    pw = np.array([w[u, v] for u, v in pairs], np.float32)
     wsz = 2 * half + 1
     ring = np.full((nv, wsz, nx, ns), np.nan, np.float32)
     gi0, gj0 = int(origin[0]), int(origin[1])

@@ -34,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 
 from tiledsm.match.sampling import CUBIC_A
-from tiledsm.match.sweep import MASKED_COST, sample_hull
+from tiledsm.match.sweep import empty_volume, sample_plan, view_pairs
 
 __all__ = ["aggregate", "check_device", "cost_volume"]
 
@@ -242,13 +242,9 @@ def cost_volume(
     nd = max(1, int(nvalid.max()))
     base = np.ascontiguousarray(base, np.int64)
     nvalid = np.ascontiguousarray(nvalid, np.int64)
-    lo, hi = sample_hull(base, nvalid, half)
-    span = np.maximum(hi - lo + 1, 0)
-    ns = int(span.max()) if span.size else 0
-    if details is not None:
-        details["n_samples"] = int(span.sum())
+    lo, hi, ns = sample_plan(base, nvalid, half, details)
+    vol = empty_volume(nvalid, nd)
     k = np.arange(nd)
-    vol = np.where(k < nvalid[..., None], np.float32(np.nan), MASKED_COST).astype(np.float32)
     if ns <= 0 or ny <= 2 * half or nx <= 2 * half:
         return vol
     with torch.no_grad():
@@ -262,9 +258,7 @@ def cost_volume(
                      int(nodes0[0]), int(nodes0[1]), float(win_r[v]), float(win_c[v]), bool(cubic), lo_t, ns)
             for v in range(nv)
         ]
-        pairs = [(u, v) for u in range(nv) for v in range(u + 1, nv)]
-        w = np.ones((nv, nv), np.float32) if pair_w is None else np.asarray(pair_w, np.float32)
-        pw = [np.float32(w[u, v]) for u, v in pairs]
+        pairs, pw = view_pairs(nv, pair_w)
         base_t = torch.from_numpy(base).to(dev)
         step_rows = max(1, _PAIRS_PER_STEP // max(1, nx * nd))
         inner = vol[half : ny - half, half : nx - half]
