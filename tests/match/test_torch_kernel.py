@@ -35,7 +35,8 @@ def test_torch_aggregation_equals_the_compiled_one(nd):
     for kw in ({}, {"origin": (5, 70), "restart_period": 16}):
         S0 = aggregate(vol, 0.3, 2.0, base=base, nvalid=nvalid, invalid_cost=1.0, fast=True, **kw)
         S1 = torch_kernel.aggregate(vol, 0.3, 2.0, base=base, nvalid=nvalid, invalid_cost=1.0, **kw)
-        assert np.isinf(S0).any() and np.isfinite(S0).mean() > 0.4
+        # +inf exactly where a cell lacks the candidate (measured: 97 / 73 / 55 % finite at depth 1 / 2 / 9)
+        np.testing.assert_array_equal(np.isfinite(S0), np.arange(nd) < nvalid[..., None])
         np.testing.assert_array_equal(S1, S0)
     with pytest.raises(ValueError, match="guide"):
         torch_kernel.aggregate(vol, 0.3, 2.0, guide=np.zeros((37, 29), np.float32))
@@ -70,8 +71,9 @@ def test_torch_kernel_matches_as_the_compiled_one(tilts, interpolation):
     gx, gy, truth, lo, hi, kw = band_with_holes(sc, slice(20, 90), slice(10, 90), (slice(30, 40), slice(50, 65)))
     out = _both(sc.images, sc.rpcs, gx, gy, lo, hi, params={"interpolation": interpolation}, **kw)
     (h0, c0, d0), (h1, c1, d1) = out["fast"], out["torch"]
-    assert np.isfinite(h0).mean() > 0.8
-    assert np.nanmedian(np.abs(h0 - truth)) < 0.3
+    # measured: 86.4-86.8 % of the cells, median error 0.049-0.069 m
+    assert np.isfinite(h0).mean() > 0.85
+    assert np.nanmedian(np.abs(h0 - truth)) < 0.08
     np.testing.assert_array_equal(h1, h0)
     np.testing.assert_array_equal(c1, c0)
     assert d1["n_samples"] == d0["n_samples"] and _agree(h0, h1)
@@ -104,9 +106,10 @@ def test_torch_cost_volume_of_a_horizontal_sweep():
     finally:
         KERNELS.pop("keep-fast")
         KERNELS.pop("keep-torch")
-    assert d["n_candidates"] > 30
+    assert d["n_candidates"] == 65
     vol = seen["vol-fast"]
-    assert np.isnan(vol).any() and np.isfinite(vol).mean() > 0.8
+    # measured: 85.9 % valid, 14.1 % NaN (the block's border and flat windows)
+    assert np.isnan(vol).any() and np.isfinite(vol).mean() > 0.85
     np.testing.assert_array_equal(seen["vol-torch"], vol)
     np.testing.assert_array_equal(seen["S-torch"], seen["S-fast"])
 
