@@ -45,6 +45,10 @@ constant tasks per chunk).
 Usage::
 
     nice -n 10 .venv/bin/python benchmarks/dsm.py [--cases s2p synth4096] [--workers 1 2] [--schedulers threads cluster] [--graph-sizes 4096 8192 16384]
+    .venv/bin/python benchmarks/dsm.py --cases synth4096 --workers 2 --devices cpu cuda --graph-sizes  # on a GPU
+
+``--devices`` runs each case with matching on each device (``tiledsm dsm
+--device``; ``cpu`` is the compiled kernel, another the torch kernel there).
 
 Writes ``benchmarks/results/dsm.json`` and prints a markdown table.
 """
@@ -104,8 +108,15 @@ def planned_worker_mib(argv: list[str]) -> float | None:
     return float(found.group(1))
 
 
+def _device_name(device: str) -> str:
+    import torch
+
+    return torch.cuda.get_device_name(torch.device(device)) if device.startswith("cuda") else device
+
+
 def run_case(name: str, workers: int, run_dir: Path, chunk: int, timeout: float,
-             bounds: list[float] | None = None, scheduler: str = "threads", levels: int | None = None) -> dict:
+             bounds: list[float] | None = None, scheduler: str = "threads", levels: int | None = None,
+             device: str = "cpu") -> dict:
     args, info = _case_s2p(run_dir) if name == "s2p" else _case_synth(run_dir, int(name.removeprefix("synth")))
     if bounds:
         if name == "s2p":
@@ -123,6 +134,10 @@ def run_case(name: str, workers: int, run_dir: Path, chunk: int, timeout: float,
         args = [*args, "--levels", str(levels)]
         info = {**info, "levels_asked": levels}
         out = out.with_name(f"{out.name}_L{levels}")
+    if device != "cpu":
+        args = [*args, "--device", device]
+        info = {**info, "device": device, "device_name": _device_name(device)}
+        out = out.with_name(f"{out.name}_{device.replace(':', '')}")
     shutil.rmtree(out, ignore_errors=True)  # a finished store would be resumed, not recomputed
     how = scheduler_args(scheduler, workers, run_dir)
     argv = [str(TILEDSM), "dsm", *args, "--out", str(out), *how, "--chunk", str(chunk), "--no-progress"]
@@ -198,7 +213,9 @@ def _offset(r: dict) -> str:
 
 
 def _scheduler(r: dict) -> str:
-    return r.get("scheduler", "cluster")  # rows written before --schedulers were local clusters
+    # rows written before --schedulers were local clusters; matching on a torch device is named beside it
+    name = r.get("scheduler", "cluster")
+    return f"{name}, {r['device']} ({r['device_name']})" if r.get("device") else name
 
 
 def format_table(rows: list[dict]) -> str:
@@ -218,7 +235,7 @@ def format_table(rows: list[dict]) -> str:
         speed = f"{b['match_s'] / r['match_s']:.2f}" if b else "-"
         planned = r.get("planned_worker_mib")
         plan = f"{planned:.0f}" if planned else "-"
-        workers = _scheduler(r) == "cluster"  # threads: no worker process, the client runs the tasks
+        workers = r.get("scheduler", "cluster") == "cluster"  # threads: no worker process, the client runs the tasks
         per_worker = f"{m['peak_descendant_rss_mib']:.0f}" if workers else "-"
         ratio = f"{m['peak_descendant_rss_mib'] / planned:.2f}" if planned and workers else "-"
         wall_rate = r.get("mcells_per_s_wall", r["cells"] / 1e6 / m["wall_s"])
@@ -239,7 +256,8 @@ def scaling_rows(rows: list[dict]) -> list[dict]:
     smallest scene against one float32 array of the whole scene (the
     client must never hold one: ``holds_scene`` is then False)."""
     out = []
-    rows = [r for r in rows if _scheduler(r) == "cluster"]  # per-worker peaks need worker processes
+    # per-worker peaks need worker processes; matching on the CPU
+    rows = [r for r in rows if r.get("scheduler", "cluster") == "cluster" and not r.get("device")]
     for w in sorted({r["workers"] for r in rows}):
         synth = sorted((r for r in rows if r["workers"] == w and r["case"].startswith("synth") and "match_s" in r),
                        key=lambda r: r["cells"])
@@ -281,6 +299,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--schedulers", nargs="+", default=["threads"], choices=["threads", "cluster"],
                     help="threads: --workers threads of the command's process (tiledsm dsm's default); cluster: a "
                          "local cluster of --workers processes (a --cluster file); each is a row")
+    ap.add_argument("--devices", nargs="+", default=["cpu"],
+                    help="where matching runs (tiledsm dsm --device): cpu, cuda, ...; each is a row")
     ap.add_argument("--chunk", type=int, default=512)
     ap.add_argument("--levels", type=int, default=None, help="pyramid levels (default: the command's own choice)")
     ap.add_argument("--bounds", type=float, nargs=4, metavar=("XMIN", "YMIN", "XMAX", "YMAX"),
@@ -296,9 +316,11 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for case in args.cases:
         for sched in args.schedulers:
-            for w in args.workers:
-                rows.append(run_case(case, w, run_dir, args.chunk, args.timeout, args.bounds, sched, args.levels))
-                print(format_table(rows[-1:]).splitlines()[-1], flush=True)
+            for device in args.devices:
+                for w in args.workers:
+                    rows.append(run_case(case, w, run_dir, args.chunk, args.timeout, args.bounds, sched, args.levels,
+                                         device))
+                    print(format_table(rows[-1:]).splitlines()[-1], flush=True)
     table = format_table(rows)
     print(table)
     scaling = scaling_rows(rows)

@@ -38,9 +38,15 @@ from tiledsm.match.sweep import empty_volume, sample_plan, view_pairs
 
 __all__ = ["aggregate", "check_device", "cost_volume"]
 
-#: (cell, candidate) pairs a sampling or correlation step handles at once
-#: (bounds the device memory: a few dozen float64 arrays of this size)
-_PAIRS_PER_STEP = 1 << 20
+#: (cell, candidate) pairs a sampling or correlation step handles at once,
+#: on the CPU and on another device: bounds the memory (a few dozen float64
+#: arrays of this size: 0.2 GB on the CPU, 0.8 GB on a GPU, where fewer,
+#: larger steps launch fewer kernels)
+_PAIRS_PER_STEP = {"cpu": 1 << 20, "other": 1 << 22}
+
+
+def _pairs_per_step(device) -> int:
+    return _PAIRS_PER_STEP["cpu" if device.type == "cpu" else "other"]
 
 
 def _torch():
@@ -159,7 +165,7 @@ def _samples(img, lat_r, lat_c, stride, k0, dh, href, step, gi0, gj0, n0i, n0j, 
     s = torch.arange(ns, device=dev)
     i0, fy = _lattice_cell(torch.arange(ny, device=dev) + gi0, stride, n0i, gy)
     j0, fx = _lattice_cell(torch.arange(nx, device=dev) + gj0, stride, n0j, gx)
-    rows = max(1, _PAIRS_PER_STEP // max(1, nx * ns))
+    rows = max(1, _pairs_per_step(dev) // max(1, nx * ns))
     for a in range(0, ny, rows):
         b = min(ny, a + rows)
         ii, jj = i0[a:b, None, None], j0[None, :, None]
@@ -260,7 +266,7 @@ def cost_volume(
         ]
         pairs, pw = view_pairs(nv, pair_w)
         base_t = torch.from_numpy(base).to(dev)
-        step_rows = max(1, _PAIRS_PER_STEP // max(1, nx * nd))
+        step_rows = max(1, _pairs_per_step(dev) // max(1, nx * nd))
         inner = vol[half : ny - half, half : nx - half]
         for a in range(half, ny - half, step_rows):
             rows = range(a, min(ny - half, a + step_rows))
@@ -279,85 +285,104 @@ def _restarts(g, sgn: int, period: int):
     return g % period == 0 if sgn > 0 else (g + 1) % period == 0
 
 
-def _advance(c, n_here, prev, prev_min, shift, restart, P1, P2: float):
-    """One step of a set of paths (:func:`tiledsm.match.sgm._update` and
-    ``_init_fast``): cells with costs ``c`` (``(m, nd)`` float32, invalid
-    already filled) and ``n_here`` candidates, from their predecessors'
-    padded path costs ``prev`` (``(m, 3 nd + 2)``, the ``nd`` costs at
-    ``nd + 1``, +inf around) and float64 minima ``prev_min``, at label
-    offset ``shift``; ``restart`` cells start afresh from their costs.
-    Returns the padded path costs (float32) and their float64 minima
-    (+inf where a cell has no candidate)."""
+def _lines(base, nvalid, gi0: int, gj0: int, period: int, steps: int):
+    """Per step (``(steps, m)`` tensors) what each of the ``m = 2 ny + 6
+    nx`` paths of the 8 directions does: the cell it reaches (flat index;
+    an inactive path, past its line's end, reaches cell 0), its candidates,
+    its label shift from its predecessor, whether it restarts there, the
+    state row it continues (its predecessor's path) and the row of the
+    stacked output it writes (the last row, discarded, when inactive).
+
+    Paths, in state order: along the rows forward then backward (one per
+    row; step ``t`` reaches column ``t`` or ``nx - 1 - t``), then the three
+    crossing paths (``dx = +1, 0, -1`` from the previous row: ``nx`` each)
+    forward then backward (step ``t`` reaches row ``t`` or ``ny - 1 - t``).
+    The outputs are stacked as :func:`aggregate` sums them: forward along
+    the row, the three crossing forward, then the same backward."""
     torch = _torch()
-    m, nd = c.shape
-    pad = nd + 1
-    k = torch.arange(nd, device=c.device)
-    q = (pad + shift[:, None] + k[None, :]).clamp(1, 3 * nd)
-    stay = torch.gather(prev, 1, q)
-    side = torch.minimum(torch.gather(prev, 1, q - 1), torch.gather(prev, 1, q + 1)) + P1
-    trans = torch.minimum(stay, side).double() - prev_min[:, None]
-    p2 = torch.tensor(float(P2), dtype=torch.float64, device=c.device)
-    # a jump farther than the candidates: only the P2 transition exists
-    far = (shift > nd) | (shift < -nd)
-    trans = torch.where(far[:, None], p2, torch.minimum(trans, p2))
-    o = torch.where(restart[:, None], c.double(), c.double() + trans)
-    o = torch.where(k[None, :] >= n_here[:, None], torch.full_like(o, float("inf")), o)
-    out = torch.full((m, 3 * nd + 2), float("inf"), dtype=torch.float32, device=c.device)
-    out[:, pad : pad + nd] = o.float()
-    return out, o.min(dim=1).values
+    dev = base.device
+    ny, nx = base.shape
+    t = torch.arange(steps, device=dev)[:, None]
+    rows, cols = torch.arange(ny, device=dev)[None, :], torch.arange(nx, device=dev)
+    trash = 8 * ny * nx
+    parts = []
+    # along the rows: restarts at column restart lines and after a gap
+    for sgn, vol in ((1, 0), (-1, 4)):
+        j = (t if sgn > 0 else nx - 1 - t).clamp(0, nx - 1).expand(steps, ny)
+        pj = (j - sgn).clamp(0, nx - 1)
+        r = rows.expand(steps, ny)
+        restart = (t == 0) | (nvalid[r, pj] == 0) | _restarts(gj0 + j, sgn, period)
+        cell = r * nx + j
+        out = torch.where(t < nx, vol * ny * nx + cell, torch.full_like(cell, trash))
+        prev = rows.expand(steps, ny) + (0 if sgn > 0 else ny)
+        parts.append((cell, nvalid[r, j], base[r, j] - base[r, pj], restart, prev, out))
+    # across the rows: the three paths from columns j + 1, j, j - 1 of the previous row
+    d = torch.arange(3, device=dev).repeat_interleave(nx)
+    jj = cols.repeat(3)
+    pj = jj + 1 - d
+    outside = (pj < 0) | (pj >= nx)
+    pj = pj.clamp(0, nx - 1)
+    never = torch.zeros(nx, dtype=torch.bool, device=dev)
+    col_restart = torch.cat([never | _restarts(cols + gj0, -1, period), never,
+                             never | _restarts(cols + gj0, 1, period)])
+    for sgn, vol, first in ((1, 1, 2 * ny), (-1, 5, 2 * ny + 3 * nx)):
+        i = (t if sgn > 0 else ny - 1 - t).clamp(0, ny - 1).expand(steps, 3 * nx)
+        pi = (i - sgn).clamp(0, ny - 1)
+        jx = jj.expand(steps, 3 * nx)
+        restart = ((t == 0) | _restarts(gi0 + i, sgn, period) | outside | (nvalid[pi, pj] == 0)
+                   | col_restart)
+        cell = i * nx + jx
+        out = torch.where(t < ny, (vol + d) * ny * nx + cell, torch.full_like(cell, trash))
+        prev = (first + d * nx + pj).expand(steps, 3 * nx)
+        parts.append((cell, nvalid[i, jx], base[i, jx] - base[pi, pj], restart, prev, out))
+    return [torch.cat([p[k] for p in parts], dim=1) for k in range(6)]
 
 
-def _sweep(cost, base, nvalid, P1, P2: float, gi0: int, gj0: int, period: int, forward: bool, S) -> None:
-    """Add the four paths of one sweep over the rows of ``cost`` (``(ny,
-    nx, nd)`` float32, invalid filled) into ``S`` as
-    :func:`tiledsm.match.sgm._pass_fast` does: the path along the rows
-    (one column at a time, over every row) and the three that cross from
-    the previous row (one row at a time, over every column)."""
+def _paths(cost, base, nvalid, P1, P2: float, gi0: int, gj0: int, period: int):
+    """Path costs ``(8 ny nx + 1, nd)`` float32 of the 8 paths
+    (:func:`_lines` order; the last row discarded) as
+    :func:`tiledsm.match.sgm._pass_fast` computes them: at each step, for
+    every path, the stay / one-label / P2 transitions from its
+    predecessor's costs (gathered at the label shift between the two
+    cells' first candidates; a jump beyond the candidates has only P2),
+    less the predecessor's minimum, added to the cell's costs in float64;
+    +inf beyond a cell's candidates. All paths advance together, one step
+    of the longest line at a time, so that a block costs ``max(ny, nx)``
+    steps of a few tensor operations each."""
     torch = _torch()
     ny, nx, nd = cost.shape
     dev = cost.device
-    sgn = 1 if forward else -1
-    width = 3 * nd + 2
-    inrow = torch.empty((ny, nx, nd), dtype=torch.float32, device=dev)
-    prev = torch.full((ny, width), float("inf"), dtype=torch.float32, device=dev)
-    prev_min = torch.zeros(ny, dtype=torch.float64, device=dev)
-    for u in range(nx):
-        j = u if forward else nx - 1 - u
-        pj = j - sgn
-        if u == 0:
-            restart = torch.ones(ny, dtype=torch.bool, device=dev)
-            shift = torch.zeros(ny, dtype=torch.long, device=dev)
-        else:
-            restart = (nvalid[:, pj] == 0) | bool(_restarts(gj0 + j, sgn, period))
-            shift = base[:, j] - base[:, pj]
-        # the in-row path's minimum stays float64 (a running value in _pass_fast)
-        prev, prev_min = _advance(cost[:, j], nvalid[:, j], prev, prev_min, shift, restart, P1, P2)
-        inrow[:, j] = prev[:, nd + 1 : 2 * nd + 1]
-    # the three crossing paths (dx = -1, 0, +1) advance together: rows d * nx + j
-    cols = torch.arange(nx, device=dev)
-    pj = torch.cat([cols + 1, cols, cols - 1])
-    pjc = pj.clamp(0, nx - 1)
-    from_prev = pjc + torch.arange(3, device=dev).repeat_interleave(nx) * nx  # rows of the stacked buffers
-    outside = (pj < 0) | (pj >= nx)
-    col_restart = torch.cat([_restarts(cols + gj0, -1, period), torch.zeros_like(outside[:nx]),
-                             _restarts(cols + gj0, 1, period)])
-    prev = torch.full((3 * nx, width), float("inf"), dtype=torch.float32, device=dev)
-    prev_min = torch.zeros(3 * nx, dtype=torch.float64, device=dev)
-    for t in range(ny):
-        i = t if forward else ny - 1 - t
-        pi = i - sgn
-        if t == 0 or bool(_restarts(gi0 + i, sgn, period)):
-            restart = torch.ones(3 * nx, dtype=torch.bool, device=dev)
-            shift = torch.zeros(3 * nx, dtype=torch.long, device=dev)
-        else:
-            restart = outside | (nvalid[pi, pjc] == 0) | col_restart
-            shift = base[i].repeat(3) - base[pi, pjc]
-        # a crossing path's minimum is stored as float32 (cur_min in _pass_fast)
-        pmin = prev_min[from_prev].float().double()
-        prev, prev_min = _advance(cost[i].repeat(3, 1), nvalid[i].repeat(3), prev[from_prev], pmin, shift, restart,
-                                  P1, P2)
-        part = prev[:, nd + 1 : 2 * nd + 1]
-        S[i] = S[i] + inrow[i] + part[:nx] + part[nx : 2 * nx] + part[2 * nx :]
+    steps = max(ny, nx)
+    cell, n_here, shift, restart, prev, out = _lines(base, nvalid, gi0, gj0, period, steps)
+    m = cell.shape[1]
+    pad, width = nd + 1, 3 * nd + 2
+    far = (shift > nd) | (shift < -nd)
+    # the window of labels k - 1 .. k + 1 of the predecessor, as flat indices into its state row
+    start = prev * width + pad - 1 + shift.clamp(-nd, nd)
+    window = torch.arange(nd + 2, device=dev)
+    k = torch.arange(nd, device=dev)
+    flat_cost = cost.reshape(ny * nx, nd)
+    paths = torch.empty((8 * ny * nx + 1, nd), dtype=torch.float32, device=dev)
+    state = torch.full((m, width), float("inf"), dtype=torch.float32, device=dev)
+    after = state.clone()
+    mins = torch.zeros(m, dtype=torch.float64, device=dev)
+    for s in range(steps):
+        c = flat_cost[cell[s]]
+        g = state.view(-1)[start[s][:, None] + window]
+        side = torch.minimum(g[:, :-2], g[:, 2:]) + P1
+        # float32 minus float64: the float64 difference of _update
+        trans = torch.minimum(g[:, 1:-1], side) - mins[prev[s]][:, None]
+        trans.clamp_(max=float(P2))
+        trans.masked_fill_(far[s][:, None], float(P2))
+        trans.masked_fill_(restart[s][:, None], 0.0)
+        o = c + trans
+        o.masked_fill_(k >= n_here[s][:, None], float("inf"))
+        mins = o.amin(dim=1)
+        mins[2 * ny :] = mins[2 * ny :].float()  # the crossing paths keep float32 minima (cur_min of _pass_fast)
+        after[:, pad : pad + nd] = o
+        paths.index_copy_(0, out[s], after[:, pad : pad + nd])
+        state, after = after, state
+    return paths
 
 
 def aggregate(
@@ -381,8 +406,11 @@ def aggregate(
         bt = torch.from_numpy(np.ascontiguousarray(b, np.int64)).to(dev)
         nt = torch.from_numpy(np.ascontiguousarray(n, np.int64)).to(dev)
         p1 = torch.tensor(np.float32(P1), device=dev)
-        S = torch.zeros(c.shape, dtype=torch.float32, device=dev)
-        gi0, gj0, period = int(origin[0]), int(origin[1]), int(restart_period)
-        for forward in (True, False):
-            _sweep(c, bt, nt, p1, np.float32(P2), gi0, gj0, period, forward, S)
+        ny, nx, nd = c.shape
+        paths = _paths(c, bt, nt, p1, np.float32(P2), int(origin[0]), int(origin[1]), int(restart_period))
+        paths = paths[: 8 * ny * nx].view(8, ny, nx, nd)
+        # summed in the compiled kernel's order: the forward sweep's four paths, then the backward one's
+        S = paths[0].clone()
+        for v in range(1, 8):
+            S += paths[v]
         return S.cpu().numpy()
