@@ -82,3 +82,26 @@ def test_reference_accuracy_on_flat_ground_says_why_it_has_no_offset():
     stats, _ = reference_accuracy(_grid_array(noisy, grid), _grid_array(flat, grid), coregister=True)
     assert set(stats["coregistered"]) == {"error"} and "slope" in stats["coregistered"]["error"]
     assert stats["nmad"] == pytest.approx(0.1, abs=0.01) and stats["completeness"] == 1.0
+
+
+def test_reference_accuracy_reads_the_dsm_three_times(synth):
+    """With the co-registration, each block of the DSM is read once for the
+    fit's windows (the whole grid when small), once for the ranges of both
+    differences and once for both histograms (it was five: two passes per
+    difference)."""
+    from collections import Counter
+
+    shape = (160, 180)
+    ref = synth.terrain(*synth.centres(shape))
+    dsm = synth.terrain(*synth.centres(shape, drow=-0.5, dcol=-0.7))
+    reads: Counter = Counter()
+
+    def read(block, block_info=None):
+        reads[tuple(block_info[0]["chunk-location"])] += 1
+        return block
+
+    height = synth.to_dataarray(dsm).chunk(64)
+    height = height.copy(data=height.data.map_blocks(read, dtype=height.dtype))
+    stats, _ = reference_accuracy(height, synth.to_dataarray(ref, "ref"), chunks=64, coregister=True)
+    assert "nmad" in stats["coregistered"]
+    assert len(reads) == 9 and set(reads.values()) == {3}

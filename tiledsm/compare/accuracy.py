@@ -103,49 +103,68 @@ def reference_accuracy(
     else:
         keep = da.ones_like(h, dtype=bool)
     d = h - r
-    stats = _statistics(d, r, keep, bins)
+    diffs = [(d, r)]
+    moved = error = None
     if coregister:
         from tiledsm.compare.coreg import CoregistrationError
 
         try:
-            stats["coregistered"] = _coregistered(pair, keep, chunks, bins)
+            moved = _moved_back(pair, chunks)
+            diffs.append(moved[1:])
         except CoregistrationError as exc:  # e.g. flat ground: no slope to fit an offset on; the plain stats stand
-            stats["coregistered"] = {"error": str(exc)}
+            error = str(exc)
+    found = _statistics(diffs, keep, bins)
+    stats = found[0]
+    if moved is not None:
+        stats["coregistered"] = _coregistered(pair, moved[0], found[1])
+    elif error is not None:
+        stats["coregistered"] = {"error": error}
     difference = pair.ref.copy(data=d)
     difference.attrs = {"long_name": "DSM - reference", "units": "m", "window": tuple(pair.ref_window)}
     return stats, difference
 
 
-def _statistics(d: da.Array, r: da.Array, keep: da.Array, bins: int) -> dict:
-    """Statistics of the differences ``d`` where the reference ``r`` has a
-    height and ``keep`` holds."""
-    lo, hi = dask.compute(da.nanmin(d), da.nanmax(d))
-    if not (np.isfinite(lo) and np.isfinite(hi)):
-        lo, hi = -1.0, 1.0  # no finite difference: only counts matter
-    pad = max(1e-3, 1e-6 * (hi - lo))
-    hs = HistogramStats(("all",), float(lo) - pad, float(hi) + pad, bins)
-    total = hs.lazy_total(partial(_partial, hs=hs), d, r, keep).compute()
-    return hs.finalize(total)["all"]
+def _statistics(diffs: list[tuple[da.Array, da.Array]], keep: da.Array, bins: int) -> list[dict]:
+    """Statistics of each difference ``d`` of ``diffs`` (with its
+    reference ``r``) where ``r`` has a height and ``keep`` holds. Two
+    passes over the inputs serve every difference: their ranges (the
+    histograms' bins), then their histograms and moments."""
+    ranges = dask.compute(*[x for d, _ in diffs for x in (da.nanmin(d), da.nanmax(d))])
+    parts = []
+    for (d, r), lo, hi in zip(diffs, ranges[0::2], ranges[1::2]):
+        if not (np.isfinite(lo) and np.isfinite(hi)):
+            lo, hi = -1.0, 1.0  # no finite difference: only counts matter
+        pad = max(1e-3, 1e-6 * (hi - lo))
+        hs = HistogramStats(("all",), float(lo) - pad, float(hi) + pad, bins)
+        parts.append((hs, hs.lazy_total(partial(_partial, hs=hs), d, r, keep)))
+    totals = dask.compute(*[total for _, total in parts])
+    return [hs.finalize(total)["all"] for (hs, _), total in zip(parts, totals)]
 
 
-def _coregistered(pair: AlignedPair, keep: da.Array, chunks: int, bins: int) -> dict:
-    """The horizontal offset of the DSM (``pair.ref``) relative to the
-    reference (``pair.other``, on the DSM's grid), and the statistics of
-    the DSM moved back onto the reference by it, on the cells the plain
-    statistics evaluate (where the reference has a height). The DSM is
-    moved, not the reference: a reference with many small holes (s2p's
-    has 30 000) would lose most of its cells to the interpolation's
-    support; bilinear, so a hole of the DSM grows by one cell at most."""
+def _moved_back(pair: AlignedPair, chunks: int):
+    """``(coreg, moved - r, r)``: the horizontal offset of the DSM
+    (``pair.ref``) relative to the reference (``pair.other``, on the DSM's
+    grid), fitted on windows of the grid, and the lazy difference of the
+    DSM moved back onto the reference by it. The DSM is moved, not the
+    reference: a reference with many small holes (s2p's has 30 000) would
+    lose most of its cells to the interpolation's support; bilinear, so a
+    hole of the DSM grows by one cell at most."""
     from tiledsm.compare.coreg import CoregParams
     from tiledsm.compare.stage import CompareParams, corrected_lazy, fit_coregistration
-    from tiledsm.compare.terrain import metric_steps
 
     onto_reference = align_dsms(pair.other, pair.ref, chunks=chunks)  # same grid: sliced, not resampled
     params = CompareParams(chunks=chunks, coreg_params=CoregParams(shift_kernel="linear"), cog=False, figures=False, report=False)
     coreg = fit_coregistration(onto_reference, params)
-    moved = corrected_lazy(onto_reference, coreg, kernel="linear")
     r = onto_reference.ref.data
-    stats = _statistics(moved - r, r, keep, bins)
+    return coreg, corrected_lazy(onto_reference, coreg, kernel="linear") - r, r
+
+
+def _coregistered(pair: AlignedPair, coreg, stats: dict) -> dict:
+    """Where the DSM lies relative to the reference (``coreg``, the fit
+    that moved it onto the reference) and ``stats`` of the moved DSM, on
+    the cells the plain statistics evaluate."""
+    from tiledsm.compare.terrain import metric_steps
+
     stats.pop("completeness")  # the move's interpolation drops cells next to holes: not the DSM's completeness
     # the fit moved the DSM onto the reference: the DSM lies the opposite way
     sx, sy = metric_steps(pair.crs, pair.transform, pair.ref.y.values[[len(pair.ref.y) // 2]])
