@@ -81,18 +81,26 @@ def _cell_size(da: xr.DataArray) -> tuple[float, float]:
     return out[0], out[1]
 
 
-def _reduce(da: xr.DataArray, max_size: int) -> tuple[np.ndarray, tuple[float, float]]:
-    """Block-mean down to at most ``max_size`` cells per side (lazy until the
-    small result), so a huge dask DSM is never loaded whole."""
-    if da.ndim != 2:
-        raise ValueError(f"quicklook: expected a 2-D (y, x) array, got dims {da.dims}")
-    if da.dims != ("y", "x"):
-        da = da.rename(dict(zip(da.dims, ("y", "x"))))
-    dy, dx = _cell_size(da)
-    f = max(1, math.ceil(max(da.shape) / max_size))
-    if f > 1:
-        da = da.coarsen(y=f, x=f, boundary="trim").mean()
-    return np.asarray(da.values, dtype=float), (dy * f, dx * f)
+def _reduce(arrays: list[xr.DataArray], max_size: int) -> list[tuple[np.ndarray, tuple[float, float]]]:
+    """Each array block-meaned down to at most ``max_size`` cells per side,
+    with its cell size: lazy until the small results, which are computed
+    together, so a huge dask DSM is never loaded whole and is read once for
+    a difference and its shading."""
+    import dask
+
+    lazy, cells = [], []
+    for da in arrays:
+        if da.ndim != 2:
+            raise ValueError(f"quicklook: expected a 2-D (y, x) array, got dims {da.dims}")
+        if da.dims != ("y", "x"):
+            da = da.rename(dict(zip(da.dims, ("y", "x"))))
+        dy, dx = _cell_size(da)
+        f = max(1, math.ceil(max(da.shape) / max_size))
+        if f > 1:
+            da = da.coarsen(y=f, x=f, boundary="trim").mean()
+        lazy.append(da.data)
+        cells.append((dy * f, dx * f))
+    return [(np.asarray(z, dtype=float), c) for z, c in zip(dask.compute(*lazy), cells)]
 
 
 def _figure(shape: tuple[int, int], figsize, dpi):
@@ -154,7 +162,8 @@ def quicklook(
 
     if kind not in KINDS:
         raise ValueError(f"quicklook: kind must be one of {KINDS}, got {kind!r}")
-    z, (dy, dx) = _reduce(da, max_size)
+    shaded = kind == "difference" and dsm is not None
+    (z, (dy, dx)), *under = _reduce([da, dsm] if shaded else [da], max_size)
     fig, ax = _figure(z.shape, figsize, dpi)
     finite = np.isfinite(z)
     ny, nx = z.shape
@@ -178,8 +187,8 @@ def quicklook(
         mappable = ax.imshow(np.ma.masked_invalid(z), cmap=cmap, vmin=lo, vmax=hi, extent=extent, interpolation="nearest")
         label = "digital number"
     else:
-        if dsm is not None:
-            h, (hy, hx) = _reduce(dsm, max_size)
+        if shaded:
+            h, (hy, hx) = under[0]
             hf = np.isfinite(h)
             shade = hillshade(np.where(hf, h, np.nanmean(h) if hf.any() else 0.0), (hy, hx))
             ax.imshow(np.where(hf, shade, np.nan), cmap="gray", vmin=0, vmax=1, extent=extent, interpolation="nearest")
