@@ -20,7 +20,7 @@ log = logging.getLogger("tiledsm")
 
 __all__ = [
     "DESCRIPTIONS", "DSM_EXPORTS", "setup_log", "withdraw_products", "dsm_metrics", "reference_on_grid",
-    "write_dsm_products", "grid_chunk", "footprint_completeness", "write_json",
+    "write_dsm_products", "grid_chunk", "completeness", "write_json",
 ]
 
 
@@ -176,18 +176,23 @@ def grid_chunk(arr: xr.DataArray) -> int:
     return int(arr.chunks[0][0]) if arr.chunks else 1024
 
 
-def footprint_completeness(height: xr.DataArray, views, h_range) -> float:
-    """Fraction of the cells seen by every view (cameras as used for
-    matching) that have a height (cells sampled every ``step`` rows/columns
-    so at most ~1 M are projected)."""
+def completeness(height: xr.DataArray, views, h_range) -> tuple[float, float]:
+    """``(all, in_footprint)``: the fraction of the grid's cells that have
+    a height, and of the cells seen by every view (cameras as used for
+    matching; cells sampled every ``step`` rows/columns so at most ~1 M
+    are projected). One pass over ``height`` gives both."""
+    import dask
+
     from tiledsm.dsm import footprint_mask
     from tiledsm.io.grids import grid_like
 
     grid = grid_like(height)
     step = max(1, int(np.ceil(np.sqrt(height.size / 1e6))))
     inside = footprint_mask(grid, views, float(np.mean(h_range)), step)
-    sample = np.isfinite(height[::step, ::step].values)
-    return float(sample[inside].mean()) if inside.any() else 0.0
+    data = height.data
+    whole, sample = dask.compute(np.isfinite(data).mean(), data[::step, ::step])
+    sample = np.isfinite(np.asarray(sample))
+    return float(whole), float(sample[inside].mean()) if inside.any() else 0.0
 
 
 def write_json(obj: dict, path: Path) -> None:

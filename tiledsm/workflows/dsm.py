@@ -9,13 +9,12 @@ import time
 from pathlib import Path
 from typing import Literal, Optional
 
-import numpy as np
 from pydantic import Field
 
 from tiledsm.cluster import ClusterConfig
 from tiledsm.orient.spec import OrientSpec
 from tiledsm.recipes import ClusterSpec, GridSpec, InputSpec, MatchSpec, OutputSpec, StrictModel
-from tiledsm.workflows.common import footprint_completeness, grid_chunk, log, write_dsm_products, write_json
+from tiledsm.workflows.common import completeness, grid_chunk, log, write_dsm_products, write_json
 
 __all__ = ["DSMRecipe", "run_dsm"]
 
@@ -82,8 +81,7 @@ def run_dsm(
 
         height = open_product(out / "dsm.zarr")["height"]
         # lazy: the client never holds the whole DSM for this
-        scores["completeness"] = float(np.isfinite(height.data).mean().compute())
-        scores["completeness_in_footprint"] = footprint_completeness(height, prep.views, prep.h_range)
+        scores["completeness"], scores["completeness_in_footprint"] = completeness(height, prep.views, prep.h_range)
         if scores["completeness_in_footprint"] < LOW_COMPLETENESS:
             warnings.append(
                 f"low completeness: {scores['completeness_in_footprint']:.0%} of the cells seen by every view have "
