@@ -36,16 +36,7 @@ sys.path.insert(0, str(REPO.parent))
 
 import profile_match  # noqa: E402  (the tasks and the scene)
 from _measure import write_result  # noqa: E402
-
-
-def agreement(fast: np.ndarray, other: np.ndarray, tol_m: float = 1e-3) -> dict:
-    """Mask and height agreement of two height arrays (NaN = no height)."""
-    a, b = np.isfinite(fast), np.isfinite(other)
-    both = a & b
-    off = float(np.mean(np.abs(fast[both] - other[both]) > tol_m)) if both.any() else 0.0
-    mask = float(np.mean(a != b))
-    return {"mask_differs": mask, "heights_off_by_more_than_1mm": off, "within_tolerance": mask <= 1e-3 and off <= 1e-3,
-            "max_abs_diff_m": float(np.max(np.abs(fast[both] - other[both]))) if both.any() else 0.0}
+from dsm_agreement import agreement  # noqa: E402
 
 
 def run_task(views, geom, cells, search, h_range, params, repeat: int) -> tuple[np.ndarray, float]:
