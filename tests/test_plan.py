@@ -584,6 +584,22 @@ def test_worker_memory_formula():
     assert banded.matching == m.matching + 12 * 640 * 640
 
 
+def test_worker_baseline_counts_the_cuda_context():
+    """A worker matching through torch on a CUDA device holds the CUDA
+    context besides the usual baseline (measured: 767-794 MiB more than
+    the same run on the CPU); on the CPU, with either kernel, it does not."""
+    from types import SimpleNamespace
+
+    from tiledsm.match.sgvll import SGVLLParams
+    from tiledsm.plan.memory import CUDA_CONTEXT_MIB, WORKER_BASELINE_MIB, worker_baseline
+
+    assert worker_baseline(SGVLLParams()) == WORKER_BASELINE_MIB * 2**20
+    assert worker_baseline(SGVLLParams(kernel="torch", device="cpu")) == WORKER_BASELINE_MIB * 2**20
+    # SGVLLParams refuses a CUDA device where torch sees none (as here): its two fields stand in
+    on_gpu = SimpleNamespace(kernel="torch", device="cuda:0")
+    assert worker_baseline(on_gpu) == (WORKER_BASELINE_MIB + CUDA_CONTEXT_MIB) * 2**20
+
+
 def test_plan_levels_match_the_built_graph(scene):
     """The plan's level sizes are the lazy DSM's own: as many matching tasks
     per level as the graph's ``match-L<level>`` layer holds."""

@@ -13,6 +13,13 @@ from typing import Sequence
 #: of which ~28 MiB was that task's cost volumes
 WORKER_BASELINE_MIB = 270
 
+#: host memory a process adds once torch has set up a CUDA device, MiB:
+#: measured on an H200 machine, a DSM run matching through torch on the GPU
+#: peaked 767 MiB (s2p pair) and 794 MiB (4096² scene) above the same run
+#: matching on its CPU (benchmarks/results/dsm_s2p_cuda_h200.json,
+#: dsm_cuda_h200.json)
+CUDA_CONTEXT_MIB = 780
+
 
 MIB = 2**20
 
@@ -164,6 +171,15 @@ def estimate_worker_memory(
     return MemoryEstimate(int(baseline) + max(matching, reading), int(baseline), volume_bytes, matching, reading)
 
 
+def worker_baseline(match) -> int:
+    """Bytes of a worker before its first task, for the matching
+    parameters ``match`` (:class:`~tiledsm.match.sgvll.SGVLLParams`):
+    :data:`WORKER_BASELINE_MIB`, plus :data:`CUDA_CONTEXT_MIB` when it
+    matches through torch on a CUDA device."""
+    on_cuda = match.kernel == "torch" and str(match.device).startswith("cuda")
+    return (WORKER_BASELINE_MIB + (CUDA_CONTEXT_MIB if on_cuda else 0)) * MIB
+
+
 def _largest_task(chunks: Sequence[int], params) -> int:
     """Longest extent along an axis of the cells a matching task computes
     (:func:`tiledsm.dsm.levels.task_window`)."""
@@ -221,7 +237,7 @@ def dsm_levels(views, grid, h_range: tuple[float, float], levels: int, params) -
             if win is not None:
                 window = max(window, (win[1] - win[0]) * (win[3] - win[2]))
         est = estimate_worker_memory(task, nd, len(views), window, geom.factor, itemsize,
-                                     search_band=level != levels - 1,
+                                     baseline=worker_baseline(params.match), search_band=level != levels - 1,
                                      volumes=3 if params.match.kernel == "reference" else 2)
         out.append(LevelPlan(level, g.shape, g.resolution, len(chunks[0]) * len(chunks[1]), geom.step, nd, task, window))
         if worst is None or est.total > worst.total:
