@@ -288,14 +288,14 @@ def _restarts(g, sgn: int, period: int):
 def _lines(base, nvalid, gi0: int, gj0: int, period: int, steps: int):
     """Per step (``(steps, m)`` tensors) what each of the ``m = 2 ny + 6
     nx`` paths of the 8 directions does: the cell it reaches (flat index;
-    an inactive path, past its line's end, reaches cell 0), its candidates,
+    an inactive path, past its line's end, stays on its last cell), its candidates,
     its label shift from its predecessor, whether it restarts there, the
     state row it continues (its predecessor's path) and the row of the
     stacked output it writes (the last row, discarded, when inactive).
 
     Paths, in state order: along the rows forward then backward (one per
     row; step ``t`` reaches column ``t`` or ``nx - 1 - t``), then the three
-    crossing paths (``dx = +1, 0, -1`` from the previous row: ``nx`` each)
+    crossing paths (from columns ``j + 1, j, j - 1`` of the previous row: ``nx`` each)
     forward then backward (step ``t`` reaches row ``t`` or ``ny - 1 - t``).
     The outputs are stacked as :func:`aggregate` sums them: forward along
     the row, the three crossing forward, then the same backward."""
@@ -322,9 +322,8 @@ def _lines(base, nvalid, gi0: int, gj0: int, period: int, steps: int):
     pj = jj + 1 - d
     outside = (pj < 0) | (pj >= nx)
     pj = pj.clamp(0, nx - 1)
-    never = torch.zeros(nx, dtype=torch.bool, device=dev)
-    col_restart = torch.cat([never | _restarts(cols + gj0, -1, period), never,
-                             never | _restarts(cols + gj0, 1, period)])
+    col_restart = torch.cat([_restarts(cols + gj0, -1, period), torch.zeros(nx, dtype=torch.bool, device=dev),
+                             _restarts(cols + gj0, 1, period)])
     for sgn, vol, first in ((1, 1, 2 * ny), (-1, 5, 2 * ny + 3 * nx)):
         i = (t if sgn > 0 else ny - 1 - t).clamp(0, ny - 1).expand(steps, 3 * nx)
         pi = (i - sgn).clamp(0, ny - 1)
