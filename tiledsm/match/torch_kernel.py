@@ -409,7 +409,7 @@ def aggregate(
         paths = _paths(c, bt, nt, p1, np.float32(P2), int(origin[0]), int(origin[1]), int(restart_period))
         paths = paths[: 8 * ny * nx].view(8, ny, nx, nd)
         # summed in the compiled kernel's order: the forward sweep's four paths, then the backward one's
-        S = paths[0].clone()
+        S = paths[0]  # in place: the path volumes are not needed after
         for v in range(1, 8):
             S += paths[v]
         return S.cpu().numpy()
