@@ -17,6 +17,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Mapping
 
+import numba as nb
 import numpy as np
 
 from tiledsm.errors import RPCError
@@ -70,8 +71,49 @@ def rpc_terms(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
     )
 
 
-def _poly(coeffs: np.ndarray, terms: np.ndarray) -> np.ndarray:
-    return np.tensordot(coeffs, terms, axes=(0, 0))
+@nb.njit(nogil=True, cache=True)
+def _rational(x, y, z, line_num, line_den, samp_num, samp_den, ln, sn):
+    """``ln[k], sn[k]``: the two RPC ratios at normalised ground point
+    ``k`` of the flat arrays ``x, y, z`` (the monomials of
+    :func:`rpc_terms`, formed once per point and never stored: a point
+    costs about a hundred flops, where the stacked ``(20, n)`` terms of
+    :func:`rpc_terms` cost memory traffic)."""
+    t = np.empty(20)
+    for k in range(x.shape[0]):
+        L = x[k]
+        P = y[k]
+        H = z[k]
+        t[0] = 1.0
+        t[1] = L
+        t[2] = P
+        t[3] = H
+        t[4] = L * P
+        t[5] = L * H
+        t[6] = P * H
+        t[7] = L * L
+        t[8] = P * P
+        t[9] = H * H
+        t[10] = L * P * H
+        t[11] = L * L * L
+        t[12] = L * P * P
+        t[13] = L * H * H
+        t[14] = L * L * P
+        t[15] = P * P * P
+        t[16] = P * H * H
+        t[17] = L * L * H
+        t[18] = P * P * H
+        t[19] = H * H * H
+        a = 0.0
+        b = 0.0
+        c = 0.0
+        d = 0.0
+        for m in range(20):
+            a += line_num[m] * t[m]
+            b += line_den[m] * t[m]
+            c += samp_num[m] * t[m]
+            d += samp_den[m] * t[m]
+        ln[k] = a / b
+        sn[k] = c / d
 
 
 @dataclass(frozen=True, eq=False)
@@ -171,9 +213,11 @@ class RPC:
         return x, y, z
 
     def _project_normalised(self, x, y, z):
-        t = rpc_terms(x, y, z)
-        ln = _poly(self.line_num, t) / _poly(self.line_den, t)
-        sn = _poly(self.samp_num, t) / _poly(self.samp_den, t)
+        x, y, z = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float), np.asarray(z, float))
+        ln = np.empty(x.shape)
+        sn = np.empty(x.shape)
+        _rational(np.ravel(x), np.ravel(y), np.ravel(z), self.line_num, self.line_den, self.samp_num,
+                  self.samp_den, ln.reshape(-1), sn.reshape(-1))
         return ln, sn
 
     def project(self, lon, lat, h) -> tuple[np.ndarray, np.ndarray]:
