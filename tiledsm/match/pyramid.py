@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 from scipy import ndimage
 
@@ -171,37 +172,58 @@ def search_from_coarse(
     ref = _nan_mean(c, valid, params.smooth, params.truncate)
     fill = _nan_mean(c, valid, params.fill_sigma, params.truncate)
     ref = np.where(np.isfinite(ref), ref, fill)
-    hole = ~valid
     ny, nx = c.shape[0] - 2 * depth, c.shape[1] - 2 * depth
-    # finer cell i of the core sits at coarse coordinate (i + 0.5) / 2 - 0.5
-    # from the core's first cell: between coarse cells floor(u) and floor(u)+1
-    u = (np.arange(2 * ny) + 0.5) / 2 - 0.5 + depth
-    v = (np.arange(2 * nx) + 0.5) / 2 - 0.5 + depth
-    i0 = np.floor(u).astype(int)
-    j0 = np.floor(v).astype(int)
-    fy = (u - i0)[:, None]
-    fx = (v - j0)[None, :]
-    num = np.zeros((2 * ny, 2 * nx))
-    den = np.zeros((2 * ny, 2 * nx))
-    any_hole = np.zeros((2 * ny, 2 * nx), bool)
-    for di, wy in ((0, 1 - fy), (1, fy)):
-        for dj, wx in ((0, 1 - fx), (1, fx)):
-            vals = ref[np.ix_(i0 + di, j0 + dj)]
-            w = wy * wx * np.isfinite(vals)
-            num += np.where(w > 0, w * np.nan_to_num(vals), 0.0)
-            den += w
-            any_hole |= (wy * wx > 0) & hole[np.ix_(i0 + di, j0 + dj)]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        href = np.where(den > 1e-12, num / den, np.nan)
-    m = np.where(any_hole, params.hole_factor * margin, margin)
-    lo_r, hi_r = float(h_range[0]), float(h_range[1])
-    lo = np.clip(href - m, lo_r, hi_r)
-    hi = np.clip(href + m, lo_r, hi_r)
-    href = np.clip(href, lo_r, hi_r)
-    bad = ~np.isfinite(href) | (hi <= lo)
-    out = np.stack([href, lo, hi]).astype(np.float32)
-    out[:, bad] = np.nan
+    out = np.empty((3, 2 * ny, 2 * nx), np.float32)
+    _band(ref, valid, depth, float(margin), float(params.hole_factor), float(h_range[0]), float(h_range[1]), out)
     return out
+
+
+@nb.njit(nogil=True, cache=True)
+def _band(ref, valid, depth, margin, hole_factor, lo_r, hi_r, out):
+    """``out[:, a, b]``: ``h_ref``, ``lo``, ``hi`` of finer cell ``[a, b]``
+    of the core (see :func:`search_from_coarse`): the NaN-aware bilinear
+    interpolation of ``ref`` (its corners added in a fixed order), the
+    band ``± margin`` (``± hole_factor * margin`` next to a coarser cell
+    without a height) clipped to ``[lo_r, hi_r]``; NaN where nothing is
+    searched."""
+    _, h2, w2 = out.shape
+    nan = np.float32(np.nan)
+    for a in range(h2):
+        # finer cell a of the core sits at coarse coordinate (a + 0.5) / 2 - 0.5
+        # from the core's first cell: between coarse cells floor(u) and floor(u) + 1
+        u = (a + 0.5) / 2 - 0.5 + depth
+        i0 = int(np.floor(u))
+        fy = u - i0
+        for b in range(w2):
+            v = (b + 0.5) / 2 - 0.5 + depth
+            j0 = int(np.floor(v))
+            fx = v - j0
+            num = 0.0
+            den = 0.0
+            hole = False
+            for di in range(2):
+                wy = 1 - fy if di == 0 else fy
+                for dj in range(2):
+                    wx = 1 - fx if dj == 0 else fx
+                    w = wy * wx
+                    val = ref[i0 + di, j0 + dj]
+                    if np.isfinite(val) and w > 0:
+                        num += w * val
+                        den += w
+                    if w > 0 and not valid[i0 + di, j0 + dj]:
+                        hole = True
+            href = num / den if den > 1e-12 else np.nan
+            m = hole_factor * margin if hole else margin
+            lo = min(max(href - m, lo_r), hi_r)
+            hi = min(max(href + m, lo_r), hi_r)
+            if not np.isfinite(href) or not hi > lo:
+                out[0, a, b] = nan
+                out[1, a, b] = nan
+                out[2, a, b] = nan
+                continue
+            out[0, a, b] = min(max(href, lo_r), hi_r)
+            out[1, a, b] = lo
+            out[2, a, b] = hi
 
 
 def level_shape(shape: tuple[int, int], level: int) -> tuple[int, int]:
