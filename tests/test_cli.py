@@ -33,6 +33,20 @@ def test_console_script_entry_point():
     assert "info" in out.stdout and "run" in out.stdout
 
 
+def test_leave_runs_the_exit_handlers_and_flushes_before_ending(tmp_path):
+    """``leave`` skips the interpreter's teardown, not what an exit owes:
+    the exit handlers run, buffered output (a pipe is block-buffered)
+    arrives, and the code is the process's."""
+    child = (
+        "import atexit; from tiledsm.cli import leave; "
+        "atexit.register(lambda: print('handler ran')); "
+        "print('buffered line'); leave(3)"
+    )
+    out = subprocess.run([sys.executable, "-c", child], capture_output=True, text=True)
+    assert out.returncode == 3
+    assert out.stdout.splitlines() == ["buffered line", "handler ran"]
+
+
 def test_info_s2p_image_matches_gdal(shared_data):
     path = shared_data("s2p_pair", "input_pair", "img_01.tif")
     info = describe(path)

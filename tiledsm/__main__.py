@@ -1,5 +1,3 @@
-import sys
+from tiledsm.cli import run
 
-from tiledsm.cli import main
-
-sys.exit(main())
+run()
