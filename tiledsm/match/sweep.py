@@ -326,13 +326,17 @@ def _zncc_row(ring, i, half, lo, base, nvalid, pair_u, pair_v, pair_w, eps, vol)
             continue
         b = base[i, j]
         # window sums in the order of cost.zncc_cost: columns left to right
+        # (each quantity's; the column's ring slot found once for all)
         for q in range(nq):
             w = win[q, :m]
             for k in range(m):
                 w[k] = 0.0
-            for c in range(j - half, j + half + 1):
-                off = b - cb[c]
-                src = col[c % wsz, q, off : off + m]
+        for c in range(j - half, j + half + 1):
+            off = b - cb[c]
+            cs = col[c % wsz]
+            for q in range(nq):
+                w = win[q, :m]
+                src = cs[q, off : off + m]
                 for k in range(m):
                     w[k] += src[k]
         out = vol[i, j, :m]
