@@ -5,24 +5,40 @@ Pure kernels (:mod:`~tiledsm.orient.bias`, :mod:`~tiledsm.orient.adjust`,
 :mod:`~tiledsm.orient.p2l`) work on arrays; :mod:`~tiledsm.orient.tracks`
 tiles the matching with dask; :mod:`~tiledsm.orient.stage` reads the inputs
 and writes the corrected RPCs.
+
+The package's names are loaded from their modules on first use (PEP 562):
+a recipe model needs :class:`~tiledsm.orient.spec.OrientSpec`, not the
+adjustment and its scipy.optimize (about 0.2 s of the start-up of every
+``tiledsm dsm``).
 """
 
-from tiledsm.orient.adjust import AdjustParams, AdjustResult, Block, adjust_block, intersect
-from tiledsm.orient.bias import MODELS, BiasModel, choose_model, get_model
-from tiledsm.orient.dem import ReferenceDEM
-from tiledsm.orient.p2l import P2LParams, P2LResult, p2l_distances, p2l_filter, ransac_filter
-from tiledsm.orient.points import ControlPoints, read_points
-from tiledsm.orient.spec import OrientSpec, orient_for_recipe, polygon_exclusion
-from tiledsm.orient.stage import Orientation, OrientParams, orient_images, write_orientation
-from tiledsm.orient.tracks import Guide, TrackParams, Tracks, coarse_guide, tie_point_tracks
+from __future__ import annotations
 
-__all__ = [
-    "AdjustParams", "AdjustResult", "Block", "adjust_block", "intersect",
-    "MODELS", "BiasModel", "choose_model", "get_model",
-    "ReferenceDEM",
-    "P2LParams", "P2LResult", "p2l_distances", "p2l_filter", "ransac_filter",
-    "ControlPoints", "read_points",
-    "OrientSpec", "orient_for_recipe", "polygon_exclusion",
-    "Orientation", "OrientParams", "orient_images", "write_orientation",
-    "Guide", "TrackParams", "Tracks", "coarse_guide", "tie_point_tracks",
-]
+import importlib
+
+#: the module of each name the package exports
+_HOME = {name: module for module, names in (
+    ("adjust", ("AdjustParams", "AdjustResult", "Block", "adjust_block", "intersect")),
+    ("bias", ("MODELS", "BiasModel", "choose_model", "get_model")),
+    ("dem", ("ReferenceDEM",)),
+    ("p2l", ("P2LParams", "P2LResult", "p2l_distances", "p2l_filter", "ransac_filter")),
+    ("points", ("ControlPoints", "read_points")),
+    ("spec", ("OrientSpec", "orient_for_recipe", "polygon_exclusion")),
+    ("stage", ("Orientation", "OrientParams", "orient_images", "write_orientation")),
+    ("tracks", ("Guide", "TrackParams", "Tracks", "coarse_guide", "tie_point_tracks")),
+) for name in names}
+
+__all__ = list(_HOME)
+
+
+def __getattr__(name: str):
+    module = _HOME.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value  # looked up once
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
