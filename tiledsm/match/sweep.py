@@ -172,49 +172,36 @@ def track(lat_r, lat_c, stride, k0, dh, cells, nodes0, href, step, labels) -> tu
     return ys, xs
 
 
-@nb.njit(nogil=True, cache=True)
-def _bicubic_many(img, ys, xs, out, wb):
+@nb.njit(nogil=True, cache=True, inline="always")
+def _bicubic_many(img, ys, xs, out):
     """``out[k] = interpolate(img, ys[k], xs[k], cubic=True)`` for all ``k``,
-    bit for bit, in vectorisable stages: integer parts and kernel weights
-    of every sample first, then the 4 x 4 gathers."""
+    bit for bit: the kernel weights and the 4 x 4 gather of a sample in
+    one pass (a sample outside the window is NaN before any weight is
+    formed). Separate stages for the weights and the gathers, through
+    scratch arrays, cost 22 % more on a level-0 task's 12-sample lines."""
     h, w = img.shape
-    m = ys.shape[0]
-    iy = wb[0, :m]
-    ix = wb[1, :m]
-    wx0, wx1, wx2, wx3 = wb[2, :m], wb[3, :m], wb[4, :m], wb[5, :m]
-    wy0, wy1, wy2, wy3 = wb[6, :m], wb[7, :m], wb[8, :m], wb[9, :m]
-    for k in range(m):
+    for k in range(ys.shape[0]):
         y = ys[k]
         x = xs[k]
-        fy0 = np.floor(y)
-        fx0 = np.floor(x)
-        iy[k] = fy0
-        ix[k] = fx0
-        fy = y - fy0
-        fx = x - fx0
-        wx0[k] = keys_far(fx + 1.0, CUBIC_A)
-        wx1[k] = keys_near(fx, CUBIC_A)
-        wx2[k] = keys_near(1.0 - fx, CUBIC_A)
-        wx3[k] = keys_far(2.0 - fx, CUBIC_A)
-        wy0[k] = keys_far(fy + 1.0, CUBIC_A)
-        wy1[k] = keys_near(fy, CUBIC_A)
-        wy2[k] = keys_near(1.0 - fy, CUBIC_A)
-        wy3[k] = keys_far(2.0 - fy, CUBIC_A)
-    for k in range(m):
-        y0 = iy[k]
-        x0 = ix[k]
+        y0 = np.floor(y)
+        x0 = np.floor(x)
         # NaN positions fail these tests too
         if not (y0 >= 1.0 and x0 >= 1.0 and y0 + 2.0 < h and x0 + 2.0 < w):
             out[k] = np.nan
             continue
+        fy = y - y0
+        fx = x - x0
+        a0 = keys_far(fx + 1.0, CUBIC_A)
+        a1 = keys_near(fx, CUBIC_A)
+        a2 = keys_near(1.0 - fx, CUBIC_A)
+        a3 = keys_far(2.0 - fx, CUBIC_A)
         r = int(y0)
         c = int(x0)
-        a0, a1, a2, a3 = wx0[k], wx1[k], wx2[k], wx3[k]
         acc = 0.0
-        acc += wy0[k] * row4(img, r - 1, c, a0, a1, a2, a3)
-        acc += wy1[k] * row4(img, r, c, a0, a1, a2, a3)
-        acc += wy2[k] * row4(img, r + 1, c, a0, a1, a2, a3)
-        acc += wy3[k] * row4(img, r + 2, c, a0, a1, a2, a3)
+        acc += keys_far(fy + 1.0, CUBIC_A) * row4(img, r - 1, c, a0, a1, a2, a3)
+        acc += keys_near(fy, CUBIC_A) * row4(img, r, c, a0, a1, a2, a3)
+        acc += keys_near(1.0 - fy, CUBIC_A) * row4(img, r + 1, c, a0, a1, a2, a3)
+        acc += keys_far(2.0 - fy, CUBIC_A) * row4(img, r + 2, c, a0, a1, a2, a3)
         out[k] = acc
 
 
@@ -230,7 +217,6 @@ def _sample_row(img, lat_r, lat_c, stride, k0, dh, href, step, gi0, gj0, n0i, n0
     ns = out.shape[1]
     yb = np.empty(ns)
     xb = np.empty(ns)
-    wb = np.empty((10, ns))
     i0, fy = lattice_cell(gi0 + r, stride, n0i, gy)
     for j in range(nx):
         l0 = lo[r, j]
@@ -245,7 +231,7 @@ def _sample_row(img, lat_r, lat_c, stride, k0, dh, href, step, gi0, gj0, n0i, n0
         _track(lat_r, lat_c, i0, j0, fy, fx, k0, dh, href[r, j], step, l0, win_r, win_c, ys, xs)
         dst = out[j, :m]
         if cubic:
-            _bicubic_many(img, ys, xs, dst, wb)
+            _bicubic_many(img, ys, xs, dst)
         else:
             for k in range(m):
                 dst[k] = interpolate(img, ys[k], xs[k], cubic, h, w)
