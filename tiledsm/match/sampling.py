@@ -20,8 +20,8 @@ import numba as nb
 import numpy as np
 
 __all__ = [
-    "CUBIC_A", "keys", "keys_near", "keys_far", "row4", "lattice_cell", "height_segment", "trilinear", "interpolate",
-    "sample_view",
+    "CUBIC_A", "keys", "keys_near", "keys_far", "row4", "lattice_cell", "height_segment", "lattice_segment",
+    "trilinear", "interpolate", "sample_view",
 ]
 
 #: Keys' cubic convolution parameter (OpenCV's INTER_CUBIC uses the same)
@@ -79,7 +79,14 @@ def height_segment(h, dh, k0, nh):
     """Interval ``t0`` (clamped to ``[0, nh - 2]``) of the height lattice
     ``(k0 + t) * dh`` holding height ``h``, and the fraction of ``h`` in it
     (beyond the lattice: extrapolated from the end interval)."""
-    tt = h / dh
+    return lattice_segment(h / dh, k0, nh)
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def lattice_segment(tt, k0, nh):
+    """:func:`height_segment` of a height given in lattice steps, ``tt =
+    h / dh`` (a sweep divides all its heights first, in one vectorised
+    loop)."""
     kt = int(np.floor(tt))
     ft = tt - kt
     t0 = kt - k0

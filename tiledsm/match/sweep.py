@@ -44,7 +44,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from tiledsm.match.sampling import CUBIC_A, height_segment, interpolate, keys_far, keys_near, lattice_cell, row4
+from tiledsm.match.sampling import CUBIC_A, interpolate, keys_far, keys_near, lattice_cell, lattice_segment, row4
 
 __all__ = ["MASKED_COST", "cost_volume", "empty_volume", "sample_hull", "sample_plan", "track", "view_pairs"]
 
@@ -115,13 +115,17 @@ def _track(lat_r, lat_c, i0, j0, fy, fx, k0, dh, hr, step, l0, win_r, win_c, ys,
     w01 = (1 - fy) * fx
     w10 = fy * (1 - fx)
     w11 = fy * fx
+    # the heights in lattice steps first, in ys: one vectorised loop of
+    # divisions (a quarter of the tracks' time when inside the next loop)
+    for k in range(ys.shape[0]):
+        ys[k] = (hr + (l0 + k) * step) / dh
     tcur = -1
     ar = 0.0
     br = 0.0
     ac = 0.0
     bc = 0.0
     for k in range(ys.shape[0]):
-        t0, ft = height_segment(hr + (l0 + k) * step, dh, k0, nh)
+        t0, ft = lattice_segment(ys[k], k0, nh)
         if t0 != tcur:
             # a new lattice segment of the vertical line: its two ends
             ar = _bilinear(lat_r, t0, i0, j0, w00, w01, w10, w11)
