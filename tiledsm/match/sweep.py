@@ -254,6 +254,24 @@ def _column_sums(ring, i, half, c, cb, m, lo, pair_u, pair_v, out):
     wsz = ring.shape[1]
     for q in range(out.shape[0]):
         out[q, :m] = 0.0
+    if nv == 2:
+        # a pair: each row's two samples read once for all five sums (the
+        # same additions in the same order as below)
+        s0, s1, s00, s11, s01 = out[0, :m], out[1, :m], out[2, :m], out[3, :m], out[4, :m]
+        for r in range(i - half, i + half + 1):
+            slot = r % wsz
+            off = cb - lo[r, c]
+            u = ring[0, slot, c, off : off + m]
+            w = ring[1, slot, c, off : off + m]
+            for k in range(m):
+                x = np.float64(u[k])
+                y = np.float64(w[k])
+                s0[k] += x
+                s00[k] += x * x
+                s1[k] += y
+                s11[k] += y * y
+                s01[k] += x * y
+        return
     for r in range(i - half, i + half + 1):
         slot = r % wsz
         off = cb - lo[r, c]
