@@ -95,6 +95,12 @@ def _case_synth(run_dir: Path, size: int) -> tuple[list[str], dict]:
     return images + ["--like", truth, "--reference", truth], {"data": f"synthetic {size}x{size} px", "reference": "truth"}
 
 
+def case_args(name: str, run_dir: Path) -> tuple[list[str], dict]:
+    """``tiledsm dsm`` arguments (views, ``--like``, ``--reference``) and the
+    row's facts of case ``name``: ``s2p`` or ``synth<N>``."""
+    return _case_s2p(run_dir) if name == "s2p" else _case_synth(run_dir, int(name.removeprefix("synth")))
+
+
 PLANNED = re.compile(r"\((\d+) MiB\) per worker")
 
 
@@ -117,7 +123,7 @@ def _device_name(device: str) -> str:
 def run_case(name: str, workers: int, run_dir: Path, chunk: int, timeout: float,
              bounds: list[float] | None = None, scheduler: str = "threads", levels: int | None = None,
              device: str = "cpu") -> dict:
-    args, info = _case_s2p(run_dir) if name == "s2p" else _case_synth(run_dir, int(name.removeprefix("synth")))
+    args, info = case_args(name, run_dir)
     if bounds:
         if name == "s2p":
             raise SystemExit("--bounds is for synthetic cases (s2p runs on s2p's grid)")

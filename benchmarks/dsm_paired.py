@@ -30,15 +30,15 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks._measure import measure, scheduler_args, write_result  # noqa: E402
 from benchmarks.blunders import export_rev  # noqa: E402
-from benchmarks.dsm import _case_s2p, _case_synth  # noqa: E402
+from benchmarks.dsm import case_args  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 
 
-def run_once(case_args: list[str], out: Path, src: Path, workers: int, timeout: float) -> dict:
+def run_once(dsm_args: list[str], out: Path, src: Path, workers: int, timeout: float) -> dict:
     """One ``python -m tiledsm dsm`` with the package in ``src``; wall/CPU and the DSM's scores."""
     shutil.rmtree(out, ignore_errors=True)  # a finished store would be resumed, not recomputed
-    argv = [sys.executable, "-m", "tiledsm", "dsm", *case_args, "--out", str(out),
+    argv = [sys.executable, "-m", "tiledsm", "dsm", *dsm_args, "--out", str(out),
             *scheduler_args("threads", workers, out.parent), "--no-progress"]
     env = dict(os.environ, PYTHONPATH=str(src))
     m = measure(argv, cwd=out.parent, env=env, log=out.with_suffix(".log"), timeout=timeout)
@@ -64,15 +64,15 @@ def main(argv: list[str] | None = None) -> int:
     base_src, commit = export_rev(args.against, run_dir)
     rows = []
     for case in args.cases:
-        case_args, info = _case_s2p(run_dir) if case == "s2p" else _case_synth(run_dir, int(case.removeprefix("synth")))
+        args_of_case, info = case_args(case, run_dir)
         # a freshly exported package compiles its kernels on its first run (numba's cache)
         for side, src in (("B", base_src), ("A", REPO)):
             for _ in range(args.warmup):
-                run_once(case_args, run_dir / f"paired_{case}_{side}", src, args.workers, args.timeout)
+                run_once(args_of_case, run_dir / f"paired_{case}_{side}", src, args.workers, args.timeout)
         runs = {"A": [], "B": []}
         for k in range(args.pairs):
             for side, src in (("B", base_src), ("A", REPO)):
-                r = run_once(case_args, run_dir / f"paired_{case}_{side}", src, args.workers, args.timeout)
+                r = run_once(args_of_case, run_dir / f"paired_{case}_{side}", src, args.workers, args.timeout)
                 runs[side].append(r)
                 print(f"{case} pair {k + 1} {side}: {r['wall_s']:.1f} s wall, {r['cpu_s']:.1f} s CPU", file=sys.stderr)
         ratios = [a["wall_s"] / b["wall_s"] for a, b in zip(runs["A"], runs["B"])]
