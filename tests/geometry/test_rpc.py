@@ -8,6 +8,7 @@ import pytest
 from tests.conftest import require_shared
 from tiledsm.geometry.fit import with_affine
 from tiledsm.geometry import RPC
+from tiledsm.geometry.rpc import rpc_terms
 
 
 @pytest.fixture(scope="module")
@@ -24,6 +25,28 @@ def _ground(rpc, shape, n=500, seed=0):
     h = rng.uniform(2000, 2600, n)
     lon, lat = rpc.localize(rng.uniform(0, shape[0], n), rng.uniform(0, shape[1], n), h)
     return lon, lat, h
+
+
+def test_compiled_projection_matches_the_monomial_form(img01):
+    """``project``'s compiled loop against the ratio of the four
+    polynomials over the stacked monomials (:func:`rpc_terms`), on the
+    image and its surroundings, scalars and 2-D arrays alike: the sums'
+    order differs, so they agree to rounding (measured: 1.8e-11 px at
+    most on these points)."""
+    rpc, shape = img01
+    lon, lat, h = _ground(rpc, shape)
+    lon = np.concatenate([lon, lon + 0.3 * rpc.lon_scale])  # beyond the image too
+    lat, h = np.concatenate([lat, lat]), np.concatenate([h, h - 300])
+    t = rpc_terms(*rpc._normalise_ground(lon, lat, h))
+    ln = (rpc.line_num @ t) / (rpc.line_den @ t)
+    sn = (rpc.samp_num @ t) / (rpc.samp_den @ t)
+    row, col = rpc.project(lon, lat, h)
+    np.testing.assert_allclose(row, ln * rpc.line_scale + rpc.line_off + 0.5, rtol=0, atol=3e-11)
+    np.testing.assert_allclose(col, sn * rpc.samp_scale + rpc.samp_off + 0.5, rtol=0, atol=3e-11)
+    r2, c2 = rpc.project(lon.reshape(40, 25), lat.reshape(40, 25), h.reshape(40, 25))
+    assert r2.shape == (40, 25) and np.array_equal(r2.ravel(), row) and np.array_equal(c2.ravel(), col)
+    r0, c0 = rpc.project(lon[0], lat[0], h[0])
+    assert np.ndim(r0) == 0 and (r0, c0) == (row[0], col[0])
 
 
 @pytest.mark.parametrize("s", [2.0, 0.5, 3.0, 1 / 3])
