@@ -21,7 +21,7 @@ import numpy as np
 
 __all__ = [
     "CUBIC_A", "keys", "keys_near", "keys_far", "row4", "lattice_cell", "height_segment", "lattice_segment",
-    "trilinear", "interpolate", "sample_view",
+    "trilinear", "cubic_at", "interpolate", "sample_view",
 ]
 
 #: Keys' cubic convolution parameter (OpenCV's INTER_CUBIC uses the same)
@@ -152,6 +152,26 @@ def trilinear(lat, t0, i0, j0, ft, fy, fx):
 
 
 @nb.njit(nogil=True, cache=True, inline="always")
+def cubic_at(img, iy, ix, fy, fx):
+    """Bicubic (Keys, a = -0.75) value of ``img`` at ``(iy + fy, ix + fx)``,
+    ``0 <= fy, fx < 1``, the 4 x 4 support inside the image (unchecked)."""
+    # the 4 + 4 kernel weights once, each by the branch of `keys` its
+    # distance falls in (0 <= f < 1), without the branches: both
+    # branches give exactly 0 at d = 1 and the far one exactly 0 at
+    # d = 2 for a = -0.75, so the values are those of `keys`
+    wx0 = keys_far(fx + 1.0, CUBIC_A)
+    wx1 = keys_near(fx, CUBIC_A)
+    wx2 = keys_near(1.0 - fx, CUBIC_A)
+    wx3 = keys_far(2.0 - fx, CUBIC_A)
+    acc = 0.0
+    acc += keys_far(fy + 1.0, CUBIC_A) * row4(img, iy - 1, ix, wx0, wx1, wx2, wx3)
+    acc += keys_near(fy, CUBIC_A) * row4(img, iy, ix, wx0, wx1, wx2, wx3)
+    acc += keys_near(1.0 - fy, CUBIC_A) * row4(img, iy + 1, ix, wx0, wx1, wx2, wx3)
+    acc += keys_far(2.0 - fy, CUBIC_A) * row4(img, iy + 2, ix, wx0, wx1, wx2, wx3)
+    return acc
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
 def interpolate(img, y, x, cubic, h, w):
     """``img`` (``h x w``) at ``(y, x)`` (array-index convention): bicubic
     (Keys, a = -0.75) when ``cubic`` else bilinear; NaN when the support
@@ -165,20 +185,7 @@ def interpolate(img, y, x, cubic, h, w):
     if cubic:
         if iy < 1 or ix < 1 or iy + 2 >= h or ix + 2 >= w:
             return np.nan
-        # the 4 + 4 kernel weights once, each by the branch of `keys` its
-        # distance falls in (0 <= f < 1), without the branches: both
-        # branches give exactly 0 at d = 1 and the far one exactly 0 at
-        # d = 2 for a = -0.75, so the values are those of `keys`
-        wx0 = keys_far(fx + 1.0, CUBIC_A)
-        wx1 = keys_near(fx, CUBIC_A)
-        wx2 = keys_near(1.0 - fx, CUBIC_A)
-        wx3 = keys_far(2.0 - fx, CUBIC_A)
-        acc = 0.0
-        acc += keys_far(fy + 1.0, CUBIC_A) * row4(img, iy - 1, ix, wx0, wx1, wx2, wx3)
-        acc += keys_near(fy, CUBIC_A) * row4(img, iy, ix, wx0, wx1, wx2, wx3)
-        acc += keys_near(1.0 - fy, CUBIC_A) * row4(img, iy + 1, ix, wx0, wx1, wx2, wx3)
-        acc += keys_far(2.0 - fy, CUBIC_A) * row4(img, iy + 2, ix, wx0, wx1, wx2, wx3)
-        return acc
+        return cubic_at(img, iy, ix, fy, fx)
     if iy < 0 or ix < 0 or iy + 1 >= h or ix + 1 >= w:
         return np.nan
     top = img[iy, ix] + fx * (img[iy, ix + 1] - img[iy, ix])
