@@ -374,6 +374,25 @@ def test_store_block_writes_from_tasks_and_multivariable(tmp_path):
     np.testing.assert_array_equal(out["n"].values, (_ramp(g).values > 2300).astype(np.uint8))
 
 
+def test_store_blocks_are_compressed_with_the_store_codec(tmp_path):
+    import zarr
+
+    from tiledsm.io.codecs import store_compressors
+
+    g = _grid(chunk=100)
+    truth = _ramp(g)
+    s = create_store(tmp_path / "c.zarr", g, {"height": "float32", "n": "uint8"})
+    for (i, j), (r0, r1, c0, c1) in g.blocks():
+        s.write_block(i, j, {"height": truth.values[r0:r1, c0:c1], "n": np.full((r1 - r0, c1 - c0), 3, np.uint8)})
+    s.finalize()
+    group = zarr.open_group(str(tmp_path / "c.zarr"), mode="r")
+    want = store_compressors()[0]
+    for name in ("height", "n"):
+        (got,) = group[name].compressors
+        assert (type(got), got.cname, got.shuffle, got.clevel) == (type(want), want.cname, want.shuffle, want.clevel)
+    np.testing.assert_array_equal(open_product(tmp_path / "c.zarr")["height"].values, truth.values)
+
+
 def test_store_unwritten_cells_are_fill_and_incompatible_partial_discarded(tmp_path):
     g = _grid(chunk=100)
     s = create_store(tmp_path / "a.zarr", g)

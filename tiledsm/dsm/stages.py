@@ -209,14 +209,17 @@ def _finish(store: ChunkStore, *computed: bool) -> bool:
 def _despeckled_task(_ready, i, j, *, staged, chunks, max_diff, size) -> np.ndarray:
     """Heights and confidence of grid chunk ``(i, j)`` of the finest level,
     read with the speckle filter's halo from its store and filtered."""
-    from tiledsm.dsm.levels import despeckle_heights, chunk_window
+    from tiledsm.dsm.levels import chunk_window
+    from tiledsm.match.sgm import remove_speckles
 
     r0, r1, hr0, hr1 = chunk_window(chunks[0], i, size)
     c0, c1, hc0, hc1 = chunk_window(chunks[1], j, size)
-    block = np.stack([_read(staged.store, hr0, hr1, hc0, hc1, v) for v in staged.store.variables])
+    height = _read(staged.store, hr0, hr1, hc0, hc1)
     if size > 1:
-        block = despeckle_heights(block, max_diff, size)
-    return block[:, r0 - hr0 : r1 - hr0, c0 - hc0 : c1 - hc0]
+        height = remove_speckles(height, max_diff, size)
+    # the filter leaves the confidence as it is (despeckle_heights): read without the halo
+    rest = [_read(staged.store, r0, r1, c0, c1, v) for v in staged.store.variables[1:]]
+    return np.stack([height[r0 - hr0 : r1 - hr0, c0 - hc0 : c1 - hc0], *rest])
 
 
 # ------------------------------------------------------------------ graphs

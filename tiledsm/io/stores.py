@@ -17,10 +17,10 @@ import xarray as xr
 
 from tiledsm.errors import GridError, InputFileError, TiledsmError
 from tiledsm.io.atomic import commit_path, remove_path, atomic_path
+from tiledsm.io.codecs import store_encoding
 from tiledsm.io.scenes import open_scene
 
 log = logging.getLogger("tiledsm.io")
-
 
 #: dataset attribute naming the variable when a store holds one DataArray
 _DA_ATTR = "tiledsm_dataarray"
@@ -451,12 +451,12 @@ def create_store(
     ds = xr.Dataset(data_vars, coords=coords, attrs={**(attrs or {}), _STORE_ATTR: json.dumps(layout)})
     if crs is not None:
         ds = ds.rio.write_crs(crs)
-        if transform is not None:
-            ds = ds.rio.write_transform(transform)
+        ds = ds.rio.write_transform(transform) if transform is not None else ds
+    for name, enc in store_encoding(var_dtypes).items():
+        ds[name].encoding.update(enc)  # beside rioxarray's grid_mapping
     with atomic_path(partial) as tmp:
         ds.to_zarr(tmp, mode="w-", zarr_format=3, consolidated=False, compute=False)
-        grp = zarr.open_group(str(tmp), mode="a")
-        prog = grp.require_group(_PROGRESS)
+        prog = zarr.open_group(str(tmp), mode="a").require_group(_PROGRESS)
         prog.create_array("done", shape=store.numblocks, chunks=(1, 1), dtype="uint8", fill_value=0)
     return store
 

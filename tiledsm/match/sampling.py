@@ -21,7 +21,7 @@ import numpy as np
 
 __all__ = [
     "CUBIC_A", "keys", "keys_near", "keys_far", "row4", "lattice_cell", "height_segment", "lattice_segment",
-    "trilinear", "cubic_at", "interpolate", "sample_view",
+    "trilinear", "cubic_weights", "cubic_sum", "cubic_at", "interpolate", "sample_view",
 ]
 
 #: Keys' cubic convolution parameter (OpenCV's INTER_CUBIC uses the same)
@@ -152,23 +152,40 @@ def trilinear(lat, t0, i0, j0, ft, fy, fx):
 
 
 @nb.njit(nogil=True, cache=True, inline="always")
+def cubic_weights(f):
+    """The four Keys (a = -0.75) weights of the pixels at distances ``f +
+    1, f, 1 - f, 2 - f`` from a position ``f`` past a pixel, ``0 <= f <
+    1``.
+
+    Each by the branch of :func:`keys` its distance falls in, without the
+    branches: both branches give exactly 0 at d = 1 and the far one
+    exactly 0 at d = 2 for a = -0.75, so the values are those of
+    :func:`keys`."""
+    return (keys_far(f + 1.0, CUBIC_A), keys_near(f, CUBIC_A), keys_near(1.0 - f, CUBIC_A),
+            keys_far(2.0 - f, CUBIC_A))
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def cubic_sum(img, iy, ix, wy0, wy1, wy2, wy3, wx0, wx1, wx2, wx3):
+    """``sum_r wy_r * row4(img, iy - 1 + r, ix, wx)``, rows top to bottom:
+    the bicubic value at a pixel and the weights of its fractions
+    (:func:`cubic_weights`), the 4 x 4 support inside the image
+    (unchecked)."""
+    acc = 0.0
+    acc += wy0 * row4(img, iy - 1, ix, wx0, wx1, wx2, wx3)
+    acc += wy1 * row4(img, iy, ix, wx0, wx1, wx2, wx3)
+    acc += wy2 * row4(img, iy + 1, ix, wx0, wx1, wx2, wx3)
+    acc += wy3 * row4(img, iy + 2, ix, wx0, wx1, wx2, wx3)
+    return acc
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
 def cubic_at(img, iy, ix, fy, fx):
     """Bicubic (Keys, a = -0.75) value of ``img`` at ``(iy + fy, ix + fx)``,
     ``0 <= fy, fx < 1``, the 4 x 4 support inside the image (unchecked)."""
-    # the 4 + 4 kernel weights once, each by the branch of `keys` its
-    # distance falls in (0 <= f < 1), without the branches: both
-    # branches give exactly 0 at d = 1 and the far one exactly 0 at
-    # d = 2 for a = -0.75, so the values are those of `keys`
-    wx0 = keys_far(fx + 1.0, CUBIC_A)
-    wx1 = keys_near(fx, CUBIC_A)
-    wx2 = keys_near(1.0 - fx, CUBIC_A)
-    wx3 = keys_far(2.0 - fx, CUBIC_A)
-    acc = 0.0
-    acc += keys_far(fy + 1.0, CUBIC_A) * row4(img, iy - 1, ix, wx0, wx1, wx2, wx3)
-    acc += keys_near(fy, CUBIC_A) * row4(img, iy, ix, wx0, wx1, wx2, wx3)
-    acc += keys_near(1.0 - fy, CUBIC_A) * row4(img, iy + 1, ix, wx0, wx1, wx2, wx3)
-    acc += keys_far(2.0 - fy, CUBIC_A) * row4(img, iy + 2, ix, wx0, wx1, wx2, wx3)
-    return acc
+    wy0, wy1, wy2, wy3 = cubic_weights(fy)
+    wx0, wx1, wx2, wx3 = cubic_weights(fx)
+    return cubic_sum(img, iy, ix, wy0, wy1, wy2, wy3, wx0, wx1, wx2, wx3)
 
 
 @nb.njit(nogil=True, cache=True, inline="always")
