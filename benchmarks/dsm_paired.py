@@ -11,7 +11,8 @@ pair's ratio A/B is taken on two runs minutes apart, so a drift of the
 machine's speed moves both. The table gives each side's median wall time
 and CPU seconds, the median and range of the pair ratios, and checks
 that both sides made the same DSM (NMAD and completeness against the
-reference). One uncounted run of each side comes first (``--warmup``:
+reference, scored apart from the timed command as ``benchmarks/dsm.py``
+scores it). One uncounted run of each side comes first (``--warmup``:
 an exported package compiles its kernels on its first run). Both sides run as ``python -m tiledsm`` from the run folder
 (the console script of this tree would not start an older package).
 Writes ``benchmarks/results/dsm_paired.json``.
@@ -20,7 +21,6 @@ Writes ``benchmarks/results/dsm_paired.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import statistics
@@ -30,13 +30,15 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks._measure import measure, scheduler_args, write_result  # noqa: E402
 from benchmarks.blunders import export_rev  # noqa: E402
-from benchmarks.dsm import case_args  # noqa: E402
+from benchmarks.dsm import case_args, score_run  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 
 
-def run_once(dsm_args: list[str], out: Path, src: Path, workers: int, timeout: float) -> dict:
-    """One ``python -m tiledsm dsm`` with the package in ``src``; wall/CPU and the DSM's scores."""
+def run_once(dsm_args: list[str], reference: str, out: Path, src: Path, workers: int, timeout: float) -> dict:
+    """One ``python -m tiledsm dsm`` with the package in ``src``; wall/CPU
+    and the DSM's scores against ``reference`` (:func:`benchmarks.dsm.score_run`,
+    this tree's scorer for both sides, untimed)."""
     shutil.rmtree(out, ignore_errors=True)  # a finished store would be resumed, not recomputed
     argv = [sys.executable, "-m", "tiledsm", "dsm", *dsm_args, "--out", str(out),
             *scheduler_args("threads", workers, out.parent), "--no-progress"]
@@ -44,7 +46,7 @@ def run_once(dsm_args: list[str], out: Path, src: Path, workers: int, timeout: f
     m = measure(argv, cwd=out.parent, env=env, log=out.with_suffix(".log"), timeout=timeout)
     if not m.ok:
         raise SystemExit(f"{' '.join(argv)} failed (PYTHONPATH={src}); see {out.with_suffix('.log')}")
-    ref = json.loads((out / "metrics.json").read_text()).get("vs_reference", {})
+    ref, _ = score_run(out, reference, workers)
     return {"wall_s": m.wall_s, "cpu_s": m.cpu_s, "nmad_m": ref.get("nmad"), "completeness": ref.get("completeness")}
 
 
@@ -68,11 +70,11 @@ def main(argv: list[str] | None = None) -> int:
         # a freshly exported package compiles its kernels on its first run (numba's cache)
         for side, src in (("B", base_src), ("A", REPO)):
             for _ in range(args.warmup):
-                run_once(args_of_case, run_dir / f"paired_{case}_{side}", src, args.workers, args.timeout)
+                run_once(args_of_case, info["reference_path"], run_dir / f"paired_{case}_{side}", src, args.workers, args.timeout)
         runs = {"A": [], "B": []}
         for k in range(args.pairs):
             for side, src in (("B", base_src), ("A", REPO)):
-                r = run_once(args_of_case, run_dir / f"paired_{case}_{side}", src, args.workers, args.timeout)
+                r = run_once(args_of_case, info["reference_path"], run_dir / f"paired_{case}_{side}", src, args.workers, args.timeout)
                 runs[side].append(r)
                 print(f"{case} pair {k + 1} {side}: {r['wall_s']:.1f} s wall, {r['cpu_s']:.1f} s CPU", file=sys.stderr)
         ratios = [a["wall_s"] / b["wall_s"] for a, b in zip(runs["A"], runs["B"])]
