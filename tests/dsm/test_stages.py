@@ -57,9 +57,11 @@ def test_staged_levels_give_the_plain_graphs_dsm(scene, tmp_path, levels, chunk,
     """With ``stage_dir`` the DSM is bit-identical to the plain graph's
     (chunks of 64, raised to the halos' floor of 90 cells, leave the
     192-cell coarse level a merged last chunk of 102 cells, whose task
-    writes two store blocks); each coarse level is a finished store of raw heights, and no
-    finer task depends on a coarse task directly: only the level's barrier
-    links them."""
+    writes two store blocks), also on 4 threads; each coarse level is a
+    store of raw heights. A finer task waits for the coarse tasks whose
+    chunks it reads and no others (no level waits for a whole coarser
+    level): without one of them, 4 threads would read blocks not yet
+    written."""
     views, grid, h_range, params = _inputs(scene, levels, chunk)
     plain = _compute(dsm_from_views(views, grid, h_range, params))
     ds = dsm_from_views(views, grid, h_range, params, stage_dir=tmp_path / "levels")
@@ -67,19 +69,23 @@ def test_staged_levels_give_the_plain_graphs_dsm(scene, tmp_path, levels, chunk,
     assert not (tmp_path / "levels").exists(), "building the graph must not write anything"
     deps = graph.dependencies
     for level in range(1, levels):
-        assert deps[f"match-L{level - 1}"] >= {f"stage-done-L{level}"}
-        assert not any(name.startswith(f"match-L{level}") for name in deps[f"match-L{level - 1}"])
+        assert deps[f"match-L{level - 1}"] == {f"stage-setup-L{level - 1}", f"match-L{level}"}
     staged = _compute(ds)
     np.testing.assert_array_equal(staged[0], plain[0])
     np.testing.assert_array_equal(staged[1], plain[1])
     assert np.isfinite(plain[0]).mean() > 0.8
-    assert deps["despeckle-L0"] == {"stage-done-L0"}  # the speckle filter reads the finest level's store
+    assert deps["despeckle-L0"] == {"match-L0"}  # the speckle filter reads the matched chunks around its own
+    with dask.config.set(scheduler="threads", num_workers=4):
+        again = dask.compute(*(dsm_from_views(views, grid, h_range, params, stage_dir=tmp_path / "threads")[v].data
+                               for v in ("height", "confidence")))
+    np.testing.assert_array_equal(again[0], plain[0])
+    np.testing.assert_array_equal(again[1], plain[1])
     stores = sorted(p.name for p in (tmp_path / "levels").iterdir())
-    assert stores == [f"L{level}.zarr" for level in range(levels)]
-    coarse = _stored(tmp_path / "levels" / "L1.zarr")
+    assert stores == [f"L{level}.zarr.partial" for level in range(levels)]
+    coarse = _stored(tmp_path / "levels" / "L1.zarr.partial")
     assert coarse.shape == (192, 192) and np.isfinite(coarse).mean() > 0.8
     # the finest store holds the heights before the speckle filter: it removed some
-    raw = _stored(tmp_path / "levels" / "L0.zarr")
+    raw = _stored(tmp_path / "levels" / "L0.zarr.partial")
     assert np.isfinite(raw).sum() > np.isfinite(staged[0]).sum()
     reports = stage_reports(tmp_path / "levels")
     assert {name: (r["chunks_total"], r["chunks_reused"]) for name, r in reports.items()} == {
@@ -102,6 +108,35 @@ def test_staged_levels_give_the_plain_graphs_dsm(scene, tmp_path, levels, chunk,
         assert 2 * params.refine_steps + 1 <= band < 16, (level, band)  # measured 13.1-14.1
 
 
+def test_a_finer_task_waits_for_the_coarse_chunks_around_its_own_only(scene, tmp_path):
+    """On a 4096² grid (the graph only; nothing is computed), chunks of
+    512: the coarse level has 4 x 4 tasks; a finer task waits for the
+    coarse tasks under its chunk and its neighbours', the speckle filter
+    of a chunk for the matched chunks around it, never a whole level."""
+    from tiledsm.geometry.grid import GroundGrid
+
+    views, small, h_range, _ = _inputs(scene, 2, 512)
+    grid = GroundGrid(crs=small.crs, x0=small.x0, y0=small.y0, resolution=small.resolution, width=4096, height=4096,
+                      chunk=512)
+    ds = dsm_from_views(views, grid, h_range, DSMParams(levels=2, chunk=512), stage_dir=tmp_path / "levels")
+    tasks = dict(ds.__dask_graph__())
+    assert not (tmp_path / "levels").exists()
+
+    def waits(name, on):
+        # keys (name, i, j), or (name, 0, i, j) for the (2, y, x) DSM's chunks
+        return {k[-2:]: {d[1:] for d in tasks[k][1:] if isinstance(d, tuple) and d[0] == on}
+                for k in tasks if isinstance(k, tuple) and k[0] == name}
+
+    fine = waits("match-L0", "match-L1")
+    assert len(fine) == 64 and set().union(*fine.values()) == {(a, b) for a in range(4) for b in range(4)}
+    # finer chunk (i, j) lies over coarse chunk (i // 2, j // 2); its search reaches a few coarse cells beyond
+    assert fine[(0, 0)] == {(0, 0)} and fine[(1, 1)] == {(0, 0), (0, 1), (1, 0), (1, 1)}
+    assert fine[(3, 4)] == {(a, b) for a in (1, 2) for b in (1, 2)}  # coarse rows 768-1024, columns 1024-1280
+    speckle = waits("despeckle-L0", "match-L0")
+    assert len(speckle) == 64 and speckle[(0, 0)] == {(0, 0), (0, 1), (1, 0), (1, 1)}
+    assert speckle[(3, 4)] == {(a, b) for a in (2, 3, 4) for b in (3, 4, 5)}
+
+
 def test_staged_level_keeps_its_finished_blocks_and_drops_a_stale_store(scene, tmp_path):
     """Rerunning the graph recomputes only the blocks not marked done: a
     block marked done keeps what is stored (here a planted value), a block
@@ -110,7 +145,7 @@ def test_staged_level_keeps_its_finished_blocks_and_drops_a_stale_store(scene, t
     views, grid, h_range, params = _inputs(scene, 2, 64)
     stage = tmp_path / "levels"
     _compute(dsm_from_views(views, grid, h_range, params, stage_dir=stage))
-    store = stage / "L1.zarr"
+    store = stage / "L1.zarr.partial"
     first = _stored(store)
     heights = zarr.open_array(store=str(store), path="height", mode="r+")
     done = zarr.open_array(store=str(store), path="_progress/done", mode="r+")

@@ -9,21 +9,28 @@ last task that needs it has run, and on a large grid that frontier grows
 with the grid (an 8192² scene: ~150 MiB per worker on top of its largest
 task, ~290 MiB at times). Here each level is matched into a resumable zarr
 store (:class:`~tiledsm.io.ChunkStore`, one block per matching chunk), its
-tasks return only a token, one barrier task waits for all of them and
-finalizes the store, and every later task reads the window it needs from
-the store: a finer level its coarse heights, the finest level's speckle
-filter its chunk plus halo. The stores hold raw matched heights; the
+tasks return only a token, and every later task reads the window it
+needs from the store: a finer level its coarse heights, the finest level's speckle
+filter its chunk plus halo. A reading task depends on the tasks that
+write the blocks it reads, and on no others: no level waits for the
+whole coarser level, so a finer level's first chunks are matched while
+the coarser level's last ones still run, and the speckle filter and the
+DSM's writes start as soon as a chunk's neighbours are matched (on 2
+workers, a thread no longer idles at each level's end). The stores hold
+raw matched heights; the
 speckle filter of a coarse level runs on the window read (grown by the
 filter's own halo), which is exact for the same reason the filter is exact
 in any chunking (:func:`~tiledsm.dsm.levels.despeckle`), so the DSM is
 bit-identical to the plain graph's (tested).
 
 A store's blocks finished by an interrupted run are kept: the tasks of
-blocks already marked done return at once, and the store records how many
-chunks it reused and the mean number of candidate heights per searched
-cell (``stage_report``). Stores carry the DSM's fingerprint
-(``stage_fingerprint``); one computed from anything else is discarded when
-its level is set up.
+blocks already marked done return at once. The store records which of its
+chunks this run computed and the candidate heights of its searched cells
+(:func:`stage_reports`). The level stores stay partial (``L<level>.zarr.partial``):
+nothing marks a level finished, as its readers may still run, and the run
+removes them once the DSM store is finished. Stores carry the DSM's
+fingerprint (``stage_fingerprint``); one computed from anything else is
+discarded when its level is set up.
 """
 
 from __future__ import annotations
@@ -49,10 +56,11 @@ __all__ = ["LEVELS_DIR", "LevelStore", "StagedLevel", "stage_level", "finest_fro
 #: once the DSM store is finished)
 LEVELS_DIR = "dsm.levels"
 _FP_ATTR = "stage_fingerprint"
-_REPORT_ATTR = "stage_report"
-#: per-block candidate counts (sum over the searched cells, and the cells)
+#: per-block candidate counts (sum over the searched cells, and the cells);
+#: per matching chunk, whether this run computed it (``computed``)
 _COUNTS = "_counts"
 _CANDIDATES = (("candidates", "int64"), ("cells", "int64"))
+_COMPUTED = "computed"
 
 
 @dataclass(frozen=True)
@@ -80,17 +88,34 @@ class StagedLevel:
     ----------
     level : LevelStore
         The store and the level.
-    done_key : str
-        Key of the barrier task: it runs once every block is written (and
-        the store finalized).
+    chunks : tuple of tuple of int
+        The level's matching chunks ``(rows, cols)``.
+    name : str
+        Its matching tasks' layer: task ``(name, i, j)`` writes the blocks
+        of chunk ``(i, j)``.
     graph : HighLevelGraph
-        The tasks up to ``done_key`` (coarser levels included); never
-        given to a task, which carries ``level`` only.
+        The tasks of the level (coarser levels included); never given to
+        a task, which carries ``level`` only.
     """
 
     level: LevelStore
-    done_key: str
+    chunks: tuple[tuple[int, ...], tuple[int, ...]]
+    name: str
     graph: HighLevelGraph
+
+    def writers(self, r0: int, r1: int, c0: int, c1: int) -> list[tuple[str, int, int]]:
+        """Keys of the matching tasks whose chunks hold level cells
+        ``[r0:r1, c0:c1]``: what a task reading them must wait for."""
+        rows = _overlapping(self.chunks[0], r0, r1)
+        cols = _overlapping(self.chunks[1], c0, c1)
+        return [(self.name, a, b) for a in rows for b in cols]
+
+
+def _overlapping(chunks: tuple[int, ...], start: int, stop: int) -> list[int]:
+    """Indices of the chunks of an axis chunked ``chunks`` that hold some of
+    ``[start, stop)``."""
+    edges = np.cumsum((0, *chunks))
+    return [k for k in range(len(chunks)) if edges[k] < stop and edges[k + 1] > start]
 
 
 # ------------------------------------------------------------------ windows
@@ -114,15 +139,9 @@ def coarse_window(
     """
     from tiledsm.match.sgm import remove_speckles
 
-    depth = coarse_depth(params)
+    (a0, a1, b0, b1), (r0, r1, c0, c1) = _coarse_extent(staged, chunks, i, j, params)
     H, W = staged.store.shape
-    # as coarse_blocks: the coarse cells under the finer chunk, grown by depth
-    rows, cols = coarse_chunks(chunks, (H, W))
-    a0, b0 = sum(rows[:i]) - depth, sum(cols[:j]) - depth
-    a1, b1 = a0 + rows[i] + 2 * depth, b0 + cols[j] + 2 * depth
     size, max_diff = speckle_rule(staged.geom, params)
-    halo = max(size, 0)
-    r0, r1, c0, c1 = max(0, a0 - halo), min(H, a1 + halo), max(0, b0 - halo), min(W, b1 + halo)
     h = _read(staged.store, r0, r1, c0, c1)
     if size > 1:
         h = remove_speckles(h, max_diff, size)
@@ -132,10 +151,26 @@ def coarse_window(
     return out
 
 
+def _coarse_extent(staged: LevelStore, chunks, i: int, j: int, params: DSMParams):
+    """``((a0, a1, b0, b1), (r0, r1, c0, c1))``: the coarse window of finer
+    task ``(i, j)`` (:func:`coarse_window`; may reach beyond the grid) and
+    the coarse cells read for it (grown by the speckle filter's halo,
+    clipped to the grid)."""
+    depth = coarse_depth(params)
+    H, W = staged.store.shape
+    # as coarse_blocks: the coarse cells under the finer chunk, grown by depth
+    rows, cols = coarse_chunks(chunks, (H, W))
+    a0, b0 = sum(rows[:i]) - depth, sum(cols[:j]) - depth
+    a1, b1 = a0 + rows[i] + 2 * depth, b0 + cols[j] + 2 * depth
+    halo = max(speckle_rule(staged.geom, params)[0], 0)
+    return (a0, a1, b0, b1), (max(0, a0 - halo), min(H, a1 + halo), max(0, b0 - halo), min(W, b1 + halo))
+
+
 # ------------------------------------------------------------------ tasks
-def _setup(store: ChunkStore, fingerprint: str, geom: LevelGeometry) -> bool:
+def _setup(store: ChunkStore, fingerprint: str, geom: LevelGeometry, tasks: tuple[int, int]) -> bool:
     """Create the level's store, or keep it (resume) when it holds the same
-    fingerprint; a store of anything else is discarded."""
+    fingerprint; a store of anything else is discarded. The marks of the
+    ``tasks`` chunks this run computes start at 0."""
     import zarr
 
     from tiledsm.io import create_store
@@ -153,9 +188,12 @@ def _setup(store: ChunkStore, fingerprint: str, geom: LevelGeometry) -> bool:
     create_store(store.path, template, {v: "float32" for v in store.variables}, attrs={_FP_ATTR: fingerprint})
     # per block: the candidate heights summed over its searched cells, and their count
     group = zarr.open_group(str(store.live_path), mode="a")
+    counts = group.require_group(_COUNTS)
     for name, dtype in _CANDIDATES:
-        if f"{_COUNTS}/{name}" not in group:
-            group.require_group(_COUNTS).create_array(name, shape=store.numblocks, chunks=(1, 1), dtype=dtype, fill_value=0)
+        if name not in counts:
+            counts.create_array(name, shape=store.numblocks, chunks=(1, 1), dtype=dtype, fill_value=0)
+    # one zarr chunk per task: tasks mark theirs concurrently
+    counts.create_array(_COMPUTED, shape=tasks, chunks=(1, 1), dtype="uint8", fill_value=0, overwrite=True)
     return True
 
 
@@ -164,9 +202,10 @@ def _blocks(store: ChunkStore, r0: int, r1: int, c0: int, c1: int) -> list[tuple
     return [(bi, bj) for bi in range(r0 // cy, -(-r1 // cy)) for bj in range(c0 // cx, -(-c1 // cx))]
 
 
-def _staged_task(_ready, _coarse_ready, i, j, *, staged_in, store, views, geom, chunks, h_range, params) -> bool:
+def _staged_task(i, j, *_ready, staged_in, store, views, geom, chunks, h_range, params) -> bool:
     """Match chunk ``(i, j)`` of a level and write it into ``store``,
-    unless an earlier run did; return whether it was computed."""
+    unless an earlier run did; return whether it was computed. ``_ready``:
+    the level's setup and the coarser tasks it reads (their values unused)."""
     from tiledsm.dsm.levels import chunk_window
 
     r0, r1, _, _ = chunk_window(chunks[0], i, 0)
@@ -188,27 +227,14 @@ def _staged_task(_ready, _coarse_ready, i, j, *, staged_in, store, views, geom, 
         zarr.open_array(store=where, path=f"{_COUNTS}/cells", mode="r+")[bi, bj] = int((cand > 0).sum())
         part = res[:, w0 - r0 : w1 - r0, v0 - c0 : v1 - c0]
         store.write_block(bi, bj, dict(zip(store.variables, part)))
+    zarr.open_array(store=where, path=f"{_COUNTS}/{_COMPUTED}", mode="r+")[i, j] = 1
     return True
 
 
-def _finish(store: ChunkStore, *computed: bool) -> bool:
-    """Record how many chunks were reused and finalize the store."""
-    import zarr
-
-    where = str(store.live_path)
-    n = int(np.asarray(zarr.open_array(store=where, path=f"{_COUNTS}/candidates", mode="r")[...]).sum())
-    cells = int(np.asarray(zarr.open_array(store=where, path=f"{_COUNTS}/cells", mode="r")[...]).sum())
-    zarr.open_group(where, mode="a").attrs[_REPORT_ATTR] = {
-        "chunks_total": len(computed), "chunks_reused": int(len(computed) - sum(computed)),
-        "cells_searched": cells, "mean_candidates_per_cell": n / cells if cells else None,
-    }
-    store.finalize()
-    return True
-
-
-def _despeckled_task(_ready, i, j, *, staged, chunks, max_diff, size) -> np.ndarray:
+def _despeckled_task(i, j, *_ready, staged, chunks, max_diff, size) -> np.ndarray:
     """Heights and confidence of grid chunk ``(i, j)`` of the finest level,
-    read with the speckle filter's halo from its store and filtered."""
+    read with the speckle filter's halo from its store and filtered
+    (``_ready``: the matching tasks that wrote them)."""
     from tiledsm.dsm.levels import chunk_window
     from tiledsm.match.sgm import remove_speckles
 
@@ -244,23 +270,23 @@ def stage_level(
     store = ChunkStore(str(Path(stage_dir) / f"L{geom.level}.zarr"), variables, tuple(geom.grid.shape), (side, side))
     fp = json.dumps({"dsm": json.loads(fingerprint), "level": geom.level}, sort_keys=True)
     # fixed names, as the plain graph's ``match-L<level>`` (one DSM per graph)
-    setup_key, name, done_key = f"stage-setup-L{geom.level}", f"match-L{geom.level}", f"stage-done-L{geom.level}"
+    setup_key, name = f"stage-setup-L{geom.level}", f"match-L{geom.level}"
     fn = partial(
         _staged_task, staged_in=None if coarser is None else coarser.level, store=store, views=list(views), geom=geom,
         chunks=chunks, h_range=tuple(h_range), params=params,
     )
-    prev = None if coarser is None else coarser.done_key
-    keys = [(name, i, j) for i in range(len(chunks[0])) for j in range(len(chunks[1]))]
-    layers = {
-        setup_key: {setup_key: (_setup, store, fp, geom)},
-        name: {k: (fn, setup_key, prev, k[1], k[2]) for k in keys},
-        done_key: {done_key: (_finish, store, *keys)},
-    }
-    deps = {setup_key: set(), name: {setup_key} | ({prev} if prev else set()), done_key: {name}}
+    tasks = {}
+    for i in range(len(chunks[0])):
+        for j in range(len(chunks[1])):
+            # the coarser tasks that write the coarse cells this task reads
+            reads = [] if coarser is None else coarser.writers(*_coarse_extent(coarser.level, chunks, i, j, params)[1])
+            tasks[(name, i, j)] = (fn, i, j, setup_key, *reads)
+    layers = {setup_key: {setup_key: (_setup, store, fp, geom, tuple(map(len, chunks)))}, name: tasks}
+    deps = {setup_key: set(), name: {setup_key} | ({coarser.name} if coarser else set())}
     graph = HighLevelGraph(layers, deps)
     if coarser is not None:
         graph = HighLevelGraph.merge(coarser.graph, graph)
-    return StagedLevel(LevelStore(store, geom), done_key, graph)
+    return StagedLevel(LevelStore(store, geom), tuple(map(tuple, chunks)), name, graph)
 
 
 def finest_from_stage(staged: StagedLevel, chunks: tuple[tuple[int, ...], tuple[int, ...]], params: DSMParams) -> da.Array:
@@ -268,28 +294,40 @@ def finest_from_stage(staged: StagedLevel, chunks: tuple[tuple[int, ...], tuple[
     ``chunks`` (the grid's), from its store once complete: each task reads
     its chunk plus the speckle filter's halo and filters it (as
     :func:`~tiledsm.dsm.levels.despeckle`)."""
+    from tiledsm.dsm.levels import chunk_window
+
     size, max_diff = speckle_rule(staged.level.geom, params)
     name = f"despeckle-L{staged.level.geom.level}"
     fn = partial(_despeckled_task, staged=staged.level, chunks=chunks, max_diff=max_diff, size=max(size, 0))
-    layer = {(name, 0, i, j): (fn, staged.done_key, i, j) for i in range(len(chunks[0])) for j in range(len(chunks[1]))}
-    graph = HighLevelGraph.merge(staged.graph, HighLevelGraph({name: layer}, {name: {staged.done_key}}))
+    layer = {}
+    for i in range(len(chunks[0])):
+        for j in range(len(chunks[1])):
+            _, _, r0, r1 = chunk_window(chunks[0], i, max(size, 0))
+            _, _, c0, c1 = chunk_window(chunks[1], j, max(size, 0))
+            layer[(name, 0, i, j)] = (fn, i, j, *staged.writers(r0, r1, c0, c1))
+    graph = HighLevelGraph.merge(staged.graph, HighLevelGraph({name: layer}, {name: {staged.name}}))
     return da.Array(graph, name, ((2,), *chunks), dtype=np.float32, meta=np.empty((0, 0, 0), np.float32))
 
 
 def stage_reports(stage_dir: Path) -> dict[str, dict]:
     """``{"L<level>": {"chunks_total", "chunks_reused", "cells_searched",
-    "mean_candidates_per_cell"}}`` of the finished level stores in
-    ``stage_dir``: what the last run computed, what it took from an earlier
-    one, and how many candidate heights a searched cell had on average
-    (the cost of matching follows it)."""
+    "mean_candidates_per_cell"}}`` of the level stores in ``stage_dir``
+    once a run has matched them: what it computed, what it took from an
+    earlier run, and how many candidate heights a searched cell had on
+    average (the cost of matching follows it)."""
     import zarr
 
     out = {}
-    for path in sorted(Path(stage_dir).glob("L*.zarr")):
+    for path in sorted(Path(stage_dir).glob("L*.zarr*")):
+        where = f"{_COUNTS}/"
         try:
-            report = zarr.open_group(str(path), mode="r").attrs.get(_REPORT_ATTR)
-        except Exception:  # not a finished store of ours
+            computed = np.asarray(zarr.open_array(store=str(path), path=where + _COMPUTED, mode="r")[...])
+            n, cells = (int(np.asarray(zarr.open_array(store=str(path), path=where + k, mode="r")[...]).sum())
+                        for k, _ in _CANDIDATES)
+        except Exception:  # not a level store of ours
             continue
-        if report:
-            out[path.stem] = dict(report)
+        out[path.name.split(".")[0]] = {
+            "chunks_total": int(computed.size), "chunks_reused": int(computed.size - computed.sum()),
+            "cells_searched": cells, "mean_candidates_per_cell": n / cells if cells else None,
+        }
     return out
