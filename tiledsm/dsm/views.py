@@ -97,16 +97,21 @@ def scene_height_range(views: Sequence[View], params: DSMParams) -> tuple[tuple[
     -------
     (h_min, h_max), views, report
     """
+    from concurrent.futures import ThreadPoolExecutor
+
     from tiledsm.match.tiepoints import height_range_from_tiepoints, match_tiepoints, relative_correction
 
     report: dict = {}
     factor = max(1, int(math.ceil(max(max(v.shape) for v in views) / 1500)))
     ref = views[0]
-    ref_img = _overview(ref, factor)
+    # GDAL's decimated reads release the GIL: all views' overviews at once
+    with ThreadPoolExecutor(max_workers=min(len(views), 4)) as pool:
+        overviews = list(pool.map(lambda v: _overview(v, factor), views))
+    ref_img = overviews[0]
     corrected = [ref]
     ranges = []
     for i, other in enumerate(views[1:], start=1):
-        p1, p2 = match_tiepoints(ref_img, _overview(other, factor))
+        p1, p2 = match_tiepoints(ref_img, overviews[i])
         # overview pixel coordinates (GDAL convention) -> full image
         p1, p2 = p1 * factor, p2 * factor
         if len(p1) < 10:
