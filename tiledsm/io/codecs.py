@@ -5,7 +5,7 @@ Blosc's LZ4 after a byte shuffle. A matching run writes every block of
 its pyramid levels and of the DSM, so the codec's time is on its
 critical path. On 512² blocks of the 4096² synthetic scene's DSM
 (``benchmarks/store_codec.py``, ``benchmarks/results/store_codec.json``)
-it writes a block about 3.5 times as fast as zarr's default (zstd level
+it writes a block 3 to 4 times as fast as zarr's default (zstd level
 0, no shuffle) and stores the heights in a smaller fraction of their raw
 size (the shuffle groups the float32 values' exponent and high mantissa
 bytes, which vary slowly over a surface). Blosc's zstd at level 1 stores
