@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from tiledsm.match.sgm import aggregate, remove_speckles, winner_take_all
+from tiledsm.match.sgm import aggregate, aggregate_best, remove_speckles, winner_take_all
 
 DIRS = [(0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1)]
 
@@ -73,15 +73,33 @@ def test_absent_candidates_never_enter_a_path(fast):
         assert np.isposinf(S[..., :nd][~present]).all() and np.isposinf(S[..., nd:]).all()
 
 
-def test_fast_aggregation_equals_reference_bit_for_bit():
-    rng = np.random.default_rng(6)
-    cost = (rng.random((30, 37, 9)) * 2).astype(np.float32)
+def _ragged_volume(seed: int, ny: int, nx: int, nd: int, shift: int):
+    """Random costs (5 % NaN), bases in ``-shift..shift`` and ``0..nd``
+    candidates per cell."""
+    rng = np.random.default_rng(seed)
+    cost = (rng.random((ny, nx, nd)) * 2).astype(np.float32)
     cost[rng.random(cost.shape) < 0.05] = np.nan
-    base = rng.integers(-5, 6, (30, 37))
-    nvalid = rng.integers(0, 10, (30, 37))
+    return cost, rng.integers(-shift, shift + 1, (ny, nx)), rng.integers(0, nd + 1, (ny, nx))
+
+
+def test_fast_aggregation_equals_reference_bit_for_bit():
+    cost, base, nvalid = _ragged_volume(6, 30, 37, 9, 5)
     for period in (0, 8):
         kw = dict(base=base, nvalid=nvalid, restart_period=period, origin=(3, 5))
         assert np.array_equal(aggregate(cost, 0.3, 2.0, **kw), aggregate(cost, 0.3, 2.0, fast=True, **kw))
+
+
+def test_winners_taken_in_the_last_pass_equal_aggregate_then_wta():
+    """aggregate_best gives winner_take_all's four arrays bit for bit, with
+    cells of 0..nd candidates, shifted bases, NaN costs and restarts."""
+    cost, base, nvalid = _ragged_volume(7, 33, 29, 11, 4)
+    for period in (0, 8):
+        kw = dict(base=base, nvalid=nvalid, restart_period=period, origin=(2, 7))
+        want = winner_take_all(aggregate(cost, 0.3, 2.0, fast=True, **kw), cost, nvalid)
+        got = aggregate_best(cost, 0.3, 2.0, **kw)
+        assert np.isnan(want[0]).any() and np.isfinite(want[0]).mean() > 0.8
+        for a, b in zip(got, want):
+            assert np.array_equal(a, b, equal_nan=True)
 
 
 def test_aggregate_adaptive_p2_and_nan():

@@ -29,11 +29,26 @@ class MatchKernel:
     on_device : bool
         Both steps take a torch ``device=`` (:meth:`for_device`); the
         others run on the CPU only.
+    best : callable, optional
+        Aggregation and winner-take-all in one: ``aggregate``'s signature,
+        returning :func:`~tiledsm.match.winner.winner_take_all`'s arrays
+        against the volume (:func:`tiledsm.match.sgm.aggregate_best`);
+        without it, :meth:`winners` runs the two in turn.
     """
 
     cost_volume: Callable
     aggregate: Callable
     on_device: bool = False
+    best: Callable | None = None
+
+    def winners(self, vol, P1: float, P2: float, *, nvalid, **kwargs) -> tuple:
+        """``(index, smin, ratio, cbest)`` of volume ``vol`` aggregated
+        with ``aggregate``'s arguments."""
+        if self.best is not None:
+            return self.best(vol, P1, P2, nvalid=nvalid, **kwargs)
+        from tiledsm.match.winner import winner_take_all
+
+        return winner_take_all(self.aggregate(vol, P1, P2, nvalid=nvalid, **kwargs), vol, nvalid)
 
     def for_device(self, device: str) -> MatchKernel:
         """The kernel with its steps bound to ``device`` (itself when it

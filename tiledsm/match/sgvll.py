@@ -43,7 +43,7 @@ from tiledsm.errors import MatchingError
 from tiledsm.geometry import RPC
 from tiledsm.match.cost import mean_zncc_cost
 from tiledsm.match.sampling import sample_view
-from tiledsm.match.sgm import aggregate, remove_speckles, winner_take_all
+from tiledsm.match.sgm import aggregate, aggregate_best, remove_speckles
 from tiledsm.match import torch_kernel
 from tiledsm.match.kernels import KERNELS, MatchKernel, register_kernel
 from tiledsm.match.sweep import MASKED_COST, cost_volume
@@ -299,7 +299,7 @@ def cost_volume_reference(
 
 
 register_kernel("reference", MatchKernel(cost_volume_reference, aggregate))
-register_kernel("fast", MatchKernel(cost_volume, functools.partial(aggregate, fast=True)))
+register_kernel("fast", MatchKernel(cost_volume, functools.partial(aggregate, fast=True), best=aggregate_best))
 register_kernel("torch", MatchKernel(torch_kernel.cost_volume, torch_kernel.aggregate, on_device=True))
 
 
@@ -539,14 +539,14 @@ def match_block(
     t_cost = time.perf_counter() - t_start
 
     t_start = time.perf_counter()
-    S = kernel.aggregate(
+    # aggregation and each cell's winner (t_sgm holds both)
+    index, _, ratio, cbest = kernel.winners(
         vol, params.P1, params.P2, base=base, nvalid=nvalid, invalid_cost=params.invalid_cost,
         origin=(gi0, gj0), restart_period=params.path_period,
     )
+    del vol
     t_sgm = time.perf_counter() - t_start
     t_start = time.perf_counter()
-    index, _, ratio, cbest = winner_take_all(S, vol, nvalid)
-    del S, vol
 
     zncc = 1.0 - cbest
     h = (href + (base + index) * step).astype(np.float32)
