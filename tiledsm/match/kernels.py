@@ -56,7 +56,8 @@ class MatchKernel:
         if not self.on_device:
             return self
         return MatchKernel(functools.partial(self.cost_volume, device=device),
-                           functools.partial(self.aggregate, device=device))
+                           functools.partial(self.aggregate, device=device),
+                           best=None if self.best is None else functools.partial(self.best, device=device))
 
 
 #: matching kernels by name (:attr:`SGVLLParams.kernel`); see :func:`register_kernel`

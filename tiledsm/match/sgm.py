@@ -284,13 +284,9 @@ def aggregate(
         +inf for absent candidates.
     """
     cost, b, n = checked_volume(cost, P1, P2, base, nvalid)
-    gi0, gj0, period = int(origin[0]), int(origin[1]), int(restart_period)
     if fast and guide is None:
-        S = np.zeros(cost.shape, np.float32)
-        p1, p2, inv = np.float32(P1), np.float32(P2), np.float32(invalid_cost)
-        _pass_fast(cost, b, n, p1, p2, S, True, gi0, gj0, period, inv, False, _NO_WINNERS)
-        _pass_fast(cost, b, n, p1, p2, S, False, gi0, gj0, period, inv, False, _NO_WINNERS)
-        return S
+        return _fast_passes(cost, b, n, P1, P2, invalid_cost, origin, restart_period)
+    gi0, gj0, period = int(origin[0]), int(origin[1]), int(restart_period)
     ny, nx, _ = cost.shape
     c = _fill_invalid(cost, np.float32(invalid_cost))
     use_guide = guide is not None
@@ -327,14 +323,22 @@ def aggregate_best(
         As :func:`winner_take_all`.
     """
     cost, b, n = checked_volume(cost, P1, P2, base, nvalid)
-    ny, nx, _ = cost.shape
+    out = tuple(np.empty(cost.shape[:2], np.float32) for _ in range(4))
+    _fast_passes(cost, b, n, P1, P2, invalid_cost, origin, restart_period, winners=out)
+    return out
+
+
+def _fast_passes(cost, b, n, P1, P2, invalid_cost, origin, restart_period, winners=None) -> np.ndarray:
+    """The two passes of the fast aggregation on a checked volume
+    (:func:`checked_volume`); ``S`` (complete unless ``winners``, the
+    four arrays the second pass then fills instead)."""
     gi0, gj0, period = int(origin[0]), int(origin[1]), int(restart_period)
     S = np.zeros(cost.shape, np.float32)
     p1, p2, inv = np.float32(P1), np.float32(P2), np.float32(invalid_cost)
-    out = tuple(np.empty((ny, nx), np.float32) for _ in range(4))
     _pass_fast(cost, b, n, p1, p2, S, True, gi0, gj0, period, inv, False, _NO_WINNERS)
-    _pass_fast(cost, b, n, p1, p2, S, False, gi0, gj0, period, inv, True, out)
-    return out
+    last = _NO_WINNERS if winners is None else winners
+    _pass_fast(cost, b, n, p1, p2, S, False, gi0, gj0, period, inv, winners is not None, last)
+    return S
 
 
 # ------------------------------------------------------------ compiled fast path
