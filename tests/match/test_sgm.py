@@ -82,17 +82,25 @@ def _ragged_volume(seed: int, ny: int, nx: int, nd: int, shift: int):
     return cost, rng.integers(-shift, shift + 1, (ny, nx)), rng.integers(0, nd + 1, (ny, nx))
 
 
-def test_fast_aggregation_equals_reference_bit_for_bit():
-    cost, base, nvalid = _ragged_volume(6, 30, 37, 9, 5)
+# depth, base spread: fewer candidates than the fixed lanes (16), with jumps
+# past the slots' guard (4) and past the depth; then cells on both sides of
+# the lanes, sharing the path slots
+DEPTHS = [(9, 5), (40, 12), (20, 15)]
+
+
+@pytest.mark.parametrize("nd, shift", DEPTHS)
+def test_fast_aggregation_equals_reference_bit_for_bit(nd, shift):
+    cost, base, nvalid = _ragged_volume(6, 30, 37, nd, shift)
     for period in (0, 8):
         kw = dict(base=base, nvalid=nvalid, restart_period=period, origin=(3, 5))
         assert np.array_equal(aggregate(cost, 0.3, 2.0, **kw), aggregate(cost, 0.3, 2.0, fast=True, **kw))
 
 
-def test_winners_taken_in_the_last_pass_equal_aggregate_then_wta():
+@pytest.mark.parametrize("nd, shift", DEPTHS)
+def test_winners_taken_in_the_last_pass_equal_aggregate_then_wta(nd, shift):
     """aggregate_best gives winner_take_all's four arrays bit for bit, with
     cells of 0..nd candidates, shifted bases, NaN costs and restarts."""
-    cost, base, nvalid = _ragged_volume(7, 33, 29, 11, 4)
+    cost, base, nvalid = _ragged_volume(7, 33, 29, nd, shift)
     for period in (0, 8):
         kw = dict(base=base, nvalid=nvalid, restart_period=period, origin=(2, 7))
         want = winner_take_all(aggregate(cost, 0.3, 2.0, fast=True, **kw), cost, nvalid)

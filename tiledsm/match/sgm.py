@@ -42,13 +42,12 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from tiledsm.match.paths import fast_passes, restarts
 from tiledsm.match.winner import ABSENT as _INF
-from tiledsm.match.winner import best_of_cell, winner_take_all
+from tiledsm.match.winner import winner_take_all
 
 __all__ = ["aggregate", "aggregate_best", "winner_take_all", "sgm", "remove_speckles"]
 
-#: the winners' outputs of a pass that takes none (:func:`_pass_fast`)
-_NO_WINNERS = tuple(np.empty((0, 0), np.float32) for _ in range(4))
 
 
 @nb.njit(nogil=True, cache=True, inline="always")
@@ -118,18 +117,6 @@ def _init(cost, i, j, out, n):
 
 
 @nb.njit(nogil=True, cache=True, inline="always")
-def _restarts(g, sgn, period):
-    """Whether a path moving by ``sgn`` along an axis restarts at global
-    index ``g``: it does on entering every ``period``-th line (from either
-    side), so its memory never spans more than ``period`` cells."""
-    if period <= 0:
-        return False
-    if sgn > 0:
-        return g % period == 0
-    return (g + 1) % period == 0
-
-
-@nb.njit(nogil=True, cache=True, inline="always")
 def _path_buffers(nx, nd):
     """Padding, padded width and the path buffers (costs, minima) of the
     previous and current row for the three row-crossing directions (dx =
@@ -163,7 +150,7 @@ def _pass(cost, base, nvalid, P1, P2, guide, use_guide, gamma, S, forward, gi0, 
         for u in range(nx):
             j = u if forward else nx - 1 - u
             n = nvalid[i, j]
-            if u == 0 or _restarts(gj0 + j, sgn, period) or nvalid[i, j - sgn] == 0:
+            if u == 0 or restarts(gj0 + j, sgn, period) or nvalid[i, j - sgn] == 0:
                 rmin = _init(cost, i, j, row, n)
             else:
                 pj = j - sgn
@@ -177,7 +164,7 @@ def _pass(cost, base, nvalid, P1, P2, guide, use_guide, gamma, S, forward, gi0, 
             dx = d - 1
             for j in range(nx):
                 pj = j - dx
-                restart = _restarts(gi0 + i, sgn, period) or (dx != 0 and _restarts(gj0 + j, dx, period))
+                restart = restarts(gi0 + i, sgn, period) or (dx != 0 and restarts(gj0 + j, dx, period))
                 n = nvalid[i, j]
                 if t == 0 or pj < 0 or pj >= nx or restart or nvalid[pi, pj] == 0:
                     cur_min[d, j] = _init(cost, i, j, cur[d, j], n)
@@ -272,10 +259,9 @@ def aggregate(
         whole grid, most of all through textureless or invalid areas,
         where costs are flat: no finite halo makes tiles exact.)
     fast : bool
-        Without a ``guide``: the compiled path of the fast matching kernel
-        (:func:`_pass_fast`: invalid costs filled row by row, no filled
-        copy of the volume, vectorised path updates), the same result bit
-        for bit.
+        Without a ``guide``: the compiled passes of the fast matching
+        kernel (:func:`tiledsm.match.paths.fast_passes`), the same result
+        bit for bit.
 
     Returns
     -------
@@ -285,7 +271,7 @@ def aggregate(
     """
     cost, b, n = checked_volume(cost, P1, P2, base, nvalid)
     if fast and guide is None:
-        return _fast_passes(cost, b, n, P1, P2, invalid_cost, origin, restart_period)
+        return fast_passes(cost, b, n, P1, P2, invalid_cost, origin, restart_period)
     gi0, gj0, period = int(origin[0]), int(origin[1]), int(restart_period)
     ny, nx, _ = cost.shape
     c = _fill_invalid(cost, np.float32(invalid_cost))
@@ -324,172 +310,8 @@ def aggregate_best(
     """
     cost, b, n = checked_volume(cost, P1, P2, base, nvalid)
     out = tuple(np.empty(cost.shape[:2], np.float32) for _ in range(4))
-    _fast_passes(cost, b, n, P1, P2, invalid_cost, origin, restart_period, winners=out)
+    fast_passes(cost, b, n, P1, P2, invalid_cost, origin, restart_period, winners=out)
     return out
-
-
-def _fast_passes(cost, b, n, P1, P2, invalid_cost, origin, restart_period, winners=None) -> np.ndarray:
-    """The two passes of the fast aggregation on a checked volume
-    (:func:`checked_volume`); ``S`` (complete unless ``winners``, the
-    four arrays the second pass then fills instead)."""
-    gi0, gj0, period = int(origin[0]), int(origin[1]), int(restart_period)
-    S = np.zeros(cost.shape, np.float32)
-    p1, p2, inv = np.float32(P1), np.float32(P2), np.float32(invalid_cost)
-    _pass_fast(cost, b, n, p1, p2, S, True, gi0, gj0, period, inv, False, _NO_WINNERS)
-    last = _NO_WINNERS if winners is None else winners
-    _pass_fast(cost, b, n, p1, p2, S, False, gi0, gj0, period, inv, winners is not None, last)
-    return S
-
-
-# ------------------------------------------------------------ compiled fast path
-# The helpers are inlined into _pass_fast (numba IR), which lets numba drop
-# the reference counting of the per-cell array views.
-
-
-@nb.njit(nogil=True, cache=True, inline="always")
-def _step_fast(c, prev, o0, prev_min, P1, P2, out, pad, ob, n):
-    """:func:`_step` on one cell's (NaN-filled) costs ``c``; ``o0 = pad + shift``.
-
-    The arithmetic types are :func:`_step`'s as compiled there (where the
-    ``P2`` of :func:`_penalty2` is a float64): the transition relative to
-    the neighbour minimum, the path cost before it is stored (float32) and
-    the returned minimum are float64, the neighbour's costs float32. The
-    path costs are computed in one vectorised loop (``ob``: float64
-    scratch), their minimum in a second one with four running minima
-    (exact in any order)."""
-    nd = c.shape[0]
-    pv = prev[o0 - 1 : o0 + nd + 1]
-    ot = out[pad : pad + nd]
-    for k in range(n):
-        m = np.float64(min(pv[k + 1], min(pv[k], pv[k + 2]) + P1)) - prev_min
-        m = min(m, P2)
-        o = np.float64(c[k]) + m
-        ob[k] = o
-        ot[k] = o
-    return _min4(ob, n)
-
-
-@nb.njit(nogil=True, cache=True, inline="always")
-def _min4(ob, n):
-    if n <= 0:
-        return np.float64(_INF)
-    b0 = ob[0]
-    b1 = b0
-    b2 = b0
-    b3 = b0
-    k = 0
-    while k + 4 <= n:
-        b0 = min(b0, ob[k])
-        b1 = min(b1, ob[k + 1])
-        b2 = min(b2, ob[k + 2])
-        b3 = min(b3, ob[k + 3])
-        k += 4
-    while k < n:
-        b0 = min(b0, ob[k])
-        k += 1
-    return min(min(b0, b1), min(b2, b3))
-
-
-@nb.njit(nogil=True, cache=True, inline="always")
-def _absent(out, pad, n, nd):
-    # candidates a cell does not have: +inf, as outside the buffer
-    for k in range(pad + n, pad + nd):
-        out[k] = _INF
-
-
-@nb.njit(nogil=True, cache=True, inline="always")
-def _init_fast(c, out, pad, ob, n):
-    nd = c.shape[0]
-    ot = out[pad : pad + nd]
-    for k in range(n):
-        ot[k] = c[k]
-        ob[k] = c[k]
-    _absent(out, pad, n, nd)
-    return np.float32(_min4(ob, n))
-
-
-@nb.njit(nogil=True, cache=True, inline="always")
-def _update(c, prev, shift, prev_min, P1, P2, out, pad, ob, n):
-    nd = c.shape[0]
-    _absent(out, pad, n, nd)
-    # a jump farther than the candidates: only the P2 transition exists
-    if shift > nd or shift < -nd:
-        ot = out[pad : pad + nd]
-        for k in range(n):
-            o = np.float64(c[k]) + np.float64(P2)
-            ob[k] = o
-            ot[k] = o
-        return _min4(ob, n)
-    return _step_fast(c, prev, pad + shift, np.float64(prev_min), P1, np.float64(P2), out, pad, ob, n)
-
-
-@nb.njit(nogil=True, cache=True)
-def _fill_row(cost, i, value, out):
-    nx, nd = out.shape
-    for j in range(nx):
-        src = cost[i, j]
-        dst = out[j]
-        for k in range(nd):
-            v = src[k]
-            dst[k] = v if np.isfinite(v) else value
-    return out
-
-
-@nb.njit(nogil=True, cache=True)
-def _pass_fast(cost, base, nvalid, P1, P2, S, forward, gi0, gj0, period, invalid, winners, out):
-    """:func:`_pass` without a guide, bit for bit: invalid costs filled row
-    by row (no filled copy of the volume), the four paths of a row summed
-    into ``S`` in one sweep, in the reference's order. With ``winners``
-    (the second pass), each cell's complete sums go to
-    :func:`~tiledsm.match.winner.best_of_cell` (``out``) instead of ``S``."""
-    ny, nx, nd = cost.shape
-    sgn = 1 if forward else -1
-    pad, width, prev, prev_min, cur, cur_min = _path_buffers(nx, nd)
-    inrow = np.full((nx, width), _INF, np.float32)
-    crow = np.empty((nx, nd), np.float32)
-    ob = np.empty(nd)
-    srow = np.empty(nd, np.float32)
-    for t in range(ny):
-        i = t if forward else ny - 1 - t
-        pi = i - sgn
-        _fill_row(cost, i, invalid, crow)
-        rmin = 0.0  # float64, as in _pass
-        for u in range(nx):
-            j = u if forward else nx - 1 - u
-            n = nvalid[i, j]
-            if u == 0 or _restarts(gj0 + j, sgn, period) or nvalid[i, j - sgn] == 0:
-                rmin = np.float64(_init_fast(crow[j], inrow[j], pad, ob, n))
-            else:
-                pj = j - sgn
-                rmin = _update(crow[j], inrow[pj], base[i, j] - base[i, pj], rmin, P1, P2, inrow[j], pad, ob, n)
-        for d in range(3):
-            dx = d - 1
-            for j in range(nx):
-                pj = j - dx
-                restart = _restarts(gi0 + i, sgn, period) or (dx != 0 and _restarts(gj0 + j, dx, period))
-                n = nvalid[i, j]
-                if t == 0 or pj < 0 or pj >= nx or restart or nvalid[pi, pj] == 0:
-                    cur_min[d, j] = _init_fast(crow[j], cur[d, j], pad, ob, n)
-                else:
-                    cur_min[d, j] = _update(
-                        crow[j], prev[d, pj], base[i, j] - base[pi, pj], prev_min[d, pj], P1, P2, cur[d, j], pad, ob, n
-                    )
-        for j in range(nx):
-            s = S[i, j]
-            a = inrow[j, pad : pad + nd]
-            b0 = cur[0, j, pad : pad + nd]
-            b1 = cur[1, j, pad : pad + nd]
-            b2 = cur[2, j, pad : pad + nd]
-            if winners:
-                # the last pass: the cell's sums are complete; its winner now, S not written back
-                for k in range(nd):
-                    srow[k] = s[k] + a[k] + b0[k] + b1[k] + b2[k]
-                best_of_cell(srow, cost[i, j], nvalid[i, j], out, i, j)
-            else:
-                for k in range(nd):
-                    s[k] = s[k] + a[k] + b0[k] + b1[k] + b2[k]
-        prev, cur = cur, prev
-        prev_min, cur_min = cur_min, prev_min
 
 
 def sgm(cost: np.ndarray, P1: float, P2: float, base: np.ndarray | None = None, **kwargs):

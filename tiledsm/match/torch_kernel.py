@@ -278,7 +278,7 @@ def cost_volume(
 
 
 def _restarts(g, sgn: int, period: int):
-    """:func:`tiledsm.match.sgm._restarts` of an integer (or integer tensor)
+    """:func:`tiledsm.match.paths.restarts` of an integer (or integer tensor)
     global index ``g``."""
     if period <= 0:
         return g != g  # never (a tensor of False for a tensor)
@@ -340,7 +340,7 @@ def _lines(base, nvalid, gi0: int, gj0: int, period: int, steps: int):
 def _paths(cost, base, nvalid, P1, P2: float, gi0: int, gj0: int, period: int):
     """Path costs ``(8 ny nx + 1, nd)`` float32 of the 8 paths
     (:func:`_lines` order; the last row discarded) as
-    :func:`tiledsm.match.sgm._pass_fast` computes them: at each step, for
+    :func:`tiledsm.match.paths.fast_passes` computes them: at each step, for
     every path, the stay / one-label / P2 transitions from its
     predecessor's costs (gathered at the label shift between the two
     cells' first candidates; a jump beyond the candidates has only P2),
