@@ -1,6 +1,10 @@
 """Semi-global aggregation against a direct (slow) implementation of the
 recursion in absolute labels, WTA and speckle filter against oracles."""
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -161,3 +165,29 @@ def test_remove_speckles_matches_connected_components():
                 expected[lab == c] = np.nan
     assert np.isnan(out[3, 3])
     assert np.array_equal(np.isnan(out), np.isnan(expected))
+
+
+_IN_BOUNDS = """
+import numpy as np
+from tiledsm.match.sgm import aggregate, aggregate_best
+rng = np.random.default_rng(1)
+for nd, shift in {depths!r}:
+    cost = (rng.random((17, 23, nd)) * 2).astype(np.float32)
+    base = rng.integers(-shift, shift + 1, (17, 23))
+    nvalid = rng.integers(0, nd + 1, (17, 23))
+    for period in (0, 8):
+        kw = dict(base=base, nvalid=nvalid, restart_period=period, origin=(3, 5))
+        aggregate(cost, 0.3, 2.0, fast=True, **kw)
+        aggregate_best(cost, 0.3, 2.0, **kw)
+"""
+
+
+def test_fast_passes_index_only_inside_their_arrays(tmp_path):
+    """The compiled passes recompiled with numba's bounds checks: any index
+    outside an array raises (unchecked, such a read returns whatever lies
+    beyond, or faults when that is unmapped: a neighbour row read before
+    the volume's first row did on a 576² volume)."""
+    env = dict(os.environ, NUMBA_BOUNDSCHECK="1", NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    run = subprocess.run([sys.executable, "-c", _IN_BOUNDS.format(depths=DEPTHS)], env=env, capture_output=True,
+                         text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]

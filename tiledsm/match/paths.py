@@ -295,10 +295,13 @@ def _pass_fast(cost, base, nvalid, P1, P2, S, forward, gi0, gj0, period, invalid
                 pj = j - dx
                 first = row_restart or pj < 0 or pj >= nx or (dx != 0 and restarts(gj0 + j, dx, period))
                 first = first or nvalid[pi, pj] == 0
+                shift = 0
                 if first:
-                    pj = j  # not read
-                cur_min[d, j] = _cell(crow[j], prev[d, pj], base[i, j] - base[pi, pj], prev_min[d, pj], P1, P2,
-                                      cur[d, j], pad, ob, nvalid[i, j], nd, wide[d], j, first)
+                    pj = j  # a slot of this row, not read (row pi may lie outside the volume)
+                else:
+                    shift = base[i, j] - base[pi, pj]
+                cur_min[d, j] = _cell(crow[j], prev[d, pj], shift, prev_min[d, pj], P1, P2, cur[d, j], pad, ob,
+                                      nvalid[i, j], nd, wide[d], j, first)
         for j in range(nx):
             s = S[i, j]
             a = inrow[j, pad : pad + nd]
