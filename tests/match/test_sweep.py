@@ -140,3 +140,18 @@ def test_track_error_pleiades(shared_data):
     h0 = float(rpcs[0].height_off)
     err = _track_error(rpcs, crs, round(x), round(y), 0.5, 96, (h0 - 200.0, h0 + 200.0))
     assert err < 2e-5  # measured 1.6e-5 px
+
+
+def test_flat_image_patch_is_invalid_not_an_error():
+    """A constant patch that is not nodata (a saturated or zero-filled area)
+    in every view: windows inside it have no variance, so no ZNCC. Both
+    kernels give those candidates no cost (NaN, then the invalid cost of
+    the aggregation) and the same DSM; the compiled kernel divided by the
+    zero deviation and raised ZeroDivisionError."""
+    sc = make_scene(tilts=(0.4, -0.4), seed=2)
+    images = [im.copy() for im in sc.images]
+    for im in images:
+        im[30:60, 30:60] = 0.0
+    gx, gy = scene_grid(sc)
+    out = _both(images, sc.rpcs, gx[:90], gy[:80], 85.0, 125.0)
+    _assert_same(out)

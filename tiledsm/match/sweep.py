@@ -137,7 +137,7 @@ def _track(lat_r, lat_c, i0, j0, fy, fx, k0, dh, hr, step, l0, win_r, win_c, ys,
         xs[k] = ac + ft * (bc - ac) - win_c
 
 
-@nb.njit(nogil=True, cache=True)
+@nb.njit(nogil=True, cache=True, error_model="numpy")
 def _track_many(lat_r, lat_c, stride, k0, dh, gi, gj, n0i, n0j, href, step, l0, ys, xs):
     nh, gy, gx = lat_r.shape
     for n in range(gi.shape[0]):
@@ -207,7 +207,7 @@ def _bicubic_many(img, ys, xs, out, iy, ix, wy, wx):
         out[k] = cubic_sum(img, r, ix[k], wy[0, k], wy[1, k], wy[2, k], wy[3, k], wx[0, k], wx[1, k], wx[2, k], wx[3, k])
 
 
-@nb.njit(nogil=True, cache=True)
+@nb.njit(nogil=True, cache=True, error_model="numpy")
 def _sample_row(img, lat_r, lat_c, stride, k0, dh, href, step, gi0, gj0, n0i, n0j, win_r, win_c, cubic, r,
                 lo, hi, out):
     """Samples of one view at the cells of block row ``r``: ``out[j, k]``
@@ -294,7 +294,11 @@ def _column_sums(ring, i, half, c, cb, m, lo, pair_u, pair_v, out):
                 d[k] += np.float64(su[k]) * np.float64(sv[k])
 
 
-@nb.njit(nogil=True, cache=True)
+# error_model="numpy": IEEE division. A flat window (not nodata: a constant
+# patch) has a zero deviation; its NaN is turned into an invalid cost by
+# _zncc's select, where numba's default Python model raised
+# ZeroDivisionError (and kept a branch in every division of the loop).
+@nb.njit(nogil=True, cache=True, error_model="numpy")
 def _zncc_row(ring, i, half, lo, base, nvalid, pair_u, pair_v, pair_w, eps, vol):
     """Costs of the cells of block row ``i`` (all their labels) from the
     samples of rows ``i - half .. i + half`` in ``ring`` (``(nv, 2 half +
@@ -380,7 +384,8 @@ def _zncc(s_a, s_b, s_aa, s_bb, s_ab, inv_n, eps):
     """``1 - ZNCC`` (float32) from window sums, the arithmetic of
     :func:`tiledsm.match.cost.zncc_cost`; NaN for a flat window or where a
     sum is not finite (the window touched nodata). Written with selects,
-    not early returns, so that loops over candidates vectorise."""
+    not early returns, so that loops over candidates vectorise; the caller
+    is compiled with IEEE division (a flat window divides by zero)."""
     va = s_aa - s_a * s_a * inv_n
     vb = s_bb - s_b * s_b * inv_n
     c = (s_ab - s_a * s_b * inv_n) / np.sqrt(va * vb)
