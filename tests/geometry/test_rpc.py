@@ -134,3 +134,20 @@ def test_with_affine_projects_gcps_onto_measured_positions(img01):
 def test_with_affine_identity_roundtrip(img01):
     rpc, _ = img01
     assert with_affine(rpc, (0, 0, 0), (0, 0, 0)) == rpc
+
+
+def test_projection_where_a_denominator_vanishes_is_not_finite():
+    """A point where the line denominator is zero (normalised height 1 for
+    ``1 - H``): the projection is not finite, as numpy's division gives,
+    instead of the compiled loop raising ZeroDivisionError."""
+    num = np.zeros(20)
+    num[1] = 1.0  # L
+    den = np.zeros(20)
+    den[0], den[3] = 1.0, -1.0  # 1 - H
+    one = np.zeros(20)
+    one[0] = 1.0
+    rpc = RPC(line_off=500, samp_off=500, lat_off=45, lon_off=5, height_off=100, line_scale=500, samp_scale=500,
+              lat_scale=0.1, lon_scale=0.1, height_scale=50, line_num=num, line_den=den, samp_num=num, samp_den=one)
+    row, col = rpc.project(np.array([5.01, 5.01]), np.array([45.0, 45.0]), np.array([150.0, 120.0]))
+    assert not np.isfinite(row[0]) and np.isfinite(col[0])
+    assert np.isfinite(row[1]) and row[1] == pytest.approx(500 + 0.5 + 500 * 0.1 / (1 - 0.4))

@@ -71,7 +71,9 @@ def rpc_terms(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
     )
 
 
-@nb.njit(nogil=True, cache=True)
+# IEEE division: a denominator that crosses zero (far outside the model's
+# domain) gives inf or NaN, as numpy's form did, not ZeroDivisionError
+@nb.njit(nogil=True, cache=True, error_model="numpy")
 def _rational(x, y, z, line_num, line_den, samp_num, samp_den, ln, sn):
     """``ln[k], sn[k]``: the two RPC ratios at normalised ground point
     ``k`` of the flat arrays ``x, y, z`` (the monomials of
