@@ -167,14 +167,14 @@ def test_remove_speckles_matches_connected_components():
     assert np.array_equal(np.isnan(out), np.isnan(expected))
 
 
+# the volumes of the bit-for-bit tests above, this module imported by path
 _IN_BOUNDS = """
-import numpy as np
+import sys
+sys.path.insert(0, {here!r})
+from test_sgm import DEPTHS, _ragged_volume
 from tiledsm.match.sgm import aggregate, aggregate_best
-rng = np.random.default_rng(1)
-for nd, shift in {depths!r}:
-    cost = (rng.random((17, 23, nd)) * 2).astype(np.float32)
-    base = rng.integers(-shift, shift + 1, (17, 23))
-    nvalid = rng.integers(0, nd + 1, (17, 23))
+for nd, shift in DEPTHS:
+    cost, base, nvalid = _ragged_volume(1, 17, 23, nd, shift)
     for period in (0, 8):
         kw = dict(base=base, nvalid=nvalid, restart_period=period, origin=(3, 5))
         aggregate(cost, 0.3, 2.0, fast=True, **kw)
@@ -188,6 +188,6 @@ def test_fast_passes_index_only_inside_their_arrays(tmp_path):
     beyond, or faults when that is unmapped: a neighbour row read before
     the volume's first row did on a 576² volume)."""
     env = dict(os.environ, NUMBA_BOUNDSCHECK="1", NUMBA_CACHE_DIR=str(tmp_path / "numba"))
-    run = subprocess.run([sys.executable, "-c", _IN_BOUNDS.format(depths=DEPTHS)], env=env, capture_output=True,
+    run = subprocess.run([sys.executable, "-c", _IN_BOUNDS.format(here=os.path.dirname(__file__))], env=env, capture_output=True,
                          text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-2000:]

@@ -226,15 +226,9 @@ def _cell(c, prev, shift, prev_min, P1, P2, out, pad, ob, n, nd, wide, slot, fir
             return _step_lanes(c, prev, pad + shift, pm, p1, p2, out, pad, ob, n)
         _absent(out, pad, n, nd)
         return _step_fast(c, prev, pad + shift, pm, p1, p2, out, pad, ob, n)
+    # beyond the guard (beyond the neighbour's candidates too: then every
+    # read is +inf and only the P2 transition remains, as in _step)
     _absent(out, pad, n, nd)
-    if shift > nd or shift < -nd:
-        # a jump farther than the candidates: only the P2 transition exists
-        ot = out[pad : pad + n]
-        for k in range(n):
-            o = np.float64(c[k]) + p2
-            ob[k] = o
-            ot[k] = o
-        return _min4(ob, n)
     return _step_bounded(c, prev, shift, pm, p1, p2, out, pad, ob, n, nd)
 
 
