@@ -27,19 +27,23 @@ class MatchKernel:
         Semi-global aggregation, the signature of
         :func:`tiledsm.match.sgm.aggregate`.
     on_device : bool
-        Both steps take a torch ``device=`` (:meth:`for_device`); the
-        others run on the CPU only.
+        Both steps take a ``device=`` (:meth:`for_device`); the others run
+        on the CPU only.
     best : callable, optional
         Aggregation and winner-take-all in one: ``aggregate``'s signature,
         returning :func:`~tiledsm.match.winner.winner_take_all`'s arrays
         against the volume (:func:`tiledsm.match.sgm.aggregate_best`);
         without it, :meth:`winners` runs the two in turn.
+    check_device : callable, optional
+        ``(device) -> None``, raising :class:`ValueError` naming a device
+        the kernel cannot run on (kernels ``on_device``).
     """
 
     cost_volume: Callable
     aggregate: Callable
     on_device: bool = False
     best: Callable | None = None
+    check_device: Callable | None = None
 
     def winners(self, vol, P1: float, P2: float, *, nvalid, **kwargs) -> tuple:
         """``(index, smin, ratio, cbest)`` of volume ``vol`` aggregated
@@ -57,7 +61,8 @@ class MatchKernel:
             return self
         return MatchKernel(functools.partial(self.cost_volume, device=device),
                            functools.partial(self.aggregate, device=device),
-                           best=None if self.best is None else functools.partial(self.best, device=device))
+                           best=None if self.best is None else functools.partial(self.best, device=device),
+                           check_device=self.check_device)
 
 
 #: matching kernels by name (:attr:`SGVLLParams.kernel`); see :func:`register_kernel`

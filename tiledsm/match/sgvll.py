@@ -44,7 +44,7 @@ from tiledsm.geometry import RPC
 from tiledsm.match.cost import mean_zncc_cost
 from tiledsm.match.sampling import sample_view
 from tiledsm.match.sgm import aggregate, aggregate_best, remove_speckles
-from tiledsm.match import torch_kernel
+from tiledsm.match import cuda_kernel, torch_kernel
 from tiledsm.match.kernels import KERNELS, MatchKernel, register_kernel
 from tiledsm.match.sweep import MASKED_COST, cost_volume
 
@@ -135,11 +135,13 @@ class SGVLLParams:
         only the candidates each cell needs), ``"reference"`` (the plain
         per-height sweep it is tested against) or ``"torch"``
         (:mod:`tiledsm.match.torch_kernel`: the fast kernel's arithmetic as
-        tensor operations, on ``device``).
+        tensor operations, on ``device``) or ``"cuda"``
+        (:mod:`tiledsm.match.cuda_kernel`: compiled CUDA kernels, the volume
+        kept on the GPU).
     device : str
-        Where the ``"torch"`` kernel runs: ``"cpu"``, ``"cuda"``,
-        ``"cuda:1"``... (``tiledsm dsm --device``); the other kernels run
-        on the CPU only.
+        Where the ``"torch"`` and ``"cuda"`` kernels run: ``"cpu"`` (torch
+        only), ``"cuda"``, ``"cuda:1"``... (``tiledsm dsm --device``); the
+        other kernels run on the CPU only.
     path_period : int
         Semi-global paths restart every ``path_period`` cells on lines of
         the whole grid (:func:`tiledsm.match.sgm.aggregate`): each cell's
@@ -179,7 +181,7 @@ class SGVLLParams:
         if self.device != "cpu":
             if not KERNELS[self.kernel].on_device:
                 raise ValueError(f"SGVLLParams.device {self.device!r}: the {self.kernel!r} kernel runs on the CPU only")
-            torch_kernel.check_device(self.device)
+            KERNELS[self.kernel].check_device(self.device)
         if self.window < 1 or self.window % 2 == 0:
             raise ValueError(f"SGVLLParams.window must be odd and >= 1, got {self.window}")
         if not 0 <= self.P1 <= self.P2:
@@ -300,7 +302,10 @@ def cost_volume_reference(
 
 register_kernel("reference", MatchKernel(cost_volume_reference, aggregate))
 register_kernel("fast", MatchKernel(cost_volume, functools.partial(aggregate, fast=True), best=aggregate_best))
-register_kernel("torch", MatchKernel(torch_kernel.cost_volume, torch_kernel.aggregate, on_device=True))
+register_kernel("torch", MatchKernel(torch_kernel.cost_volume, torch_kernel.aggregate, on_device=True,
+                                     check_device=torch_kernel.check_device))
+register_kernel("cuda", MatchKernel(cuda_kernel.cost_volume, cuda_kernel.aggregate, on_device=True,
+                                    best=cuda_kernel.best, check_device=cuda_kernel.check_device))
 
 
 def pair_weights(rpcs: Sequence[RPC], lon: float, lat: float, h: float) -> np.ndarray:

@@ -1,0 +1,450 @@
+"""The compiled CUDA kernels of :mod:`tiledsm.match.cuda_kernel` (numba's
+CUDA target). Imported by that module when a GPU kernel is first used, so
+CPU runs never import ``numba.cuda``; under ``NUMBA_ENABLE_CUDASIM=1`` the
+same kernels run in numba's CUDA simulator (tests). Each kernel names the
+CPU function whose arithmetic it repeats, in the same floating-point types
+and order."""
+
+import math
+
+import numpy as np
+from numba import config, cuda
+
+from tiledsm.match.sampling import CUBIC_A
+from tiledsm.match.sweep import MASKED_COST
+from tiledsm.match.winner import ABSENT
+
+f64 = np.float64
+f32 = np.float32
+#: +inf of the paths (tiledsm.match.winner.ABSENT)
+inf = f32(ABSENT)
+masked = f32(MASKED_COST)
+#: Keys' parameter
+a = CUBIC_A
+
+dev = cuda.jit(device=True, inline=True)
+
+# Products are rounded on their own (libdevice's _rn multiplications): the
+# compiler would otherwise fuse a product and the sum after it into one
+# multiply-add, rounded once, which the CPU kernel never does. With them
+# the GPU's samples and costs are the CPU kernel's bit for bit. The
+# simulator runs plain Python products (the same values).
+if config.ENABLE_CUDASIM:
+    def mul(x, y):
+        return x * y
+
+    mul32 = mul
+else:
+    from numba.cuda import libdevice
+
+    @dev
+    def mul(x, y):
+        """``x * y`` in float64, never fused with an addition."""
+        return libdevice.dmul_rn(x, y)
+
+    @dev
+    def mul32(x, y):
+        """``x * y`` in float32, never fused with an addition."""
+        return libdevice.fmul_rn(x, y)
+
+
+@dev
+def lattice_cell(g, stride, n0, n):
+    # tiledsm.match.sampling.lattice_cell
+    u = g / stride
+    k = int(math.floor(u))
+    f = u - k
+    k -= n0
+    if k > n - 2:
+        k = n - 2
+        f = u - (k + n0)
+    return k, f
+
+
+@dev
+def lattice_segment(tt, k0, nh):
+    # tiledsm.match.sampling.lattice_segment
+    kt = int(math.floor(tt))
+    ft = tt - kt
+    t0 = kt - k0
+    if t0 < 0:
+        t0 = 0
+        ft = tt - k0
+    elif t0 > nh - 2:
+        t0 = nh - 2
+        ft = tt - (k0 + t0)
+    return t0, ft
+
+
+@dev
+def bilinear(lat, v, t, i0, j0, w00, w01, w10, w11):
+    # tiledsm.match.sweep._bilinear
+    return (mul(w00, lat[v, t, i0, j0]) + mul(w01, lat[v, t, i0, j0 + 1]) + mul(w10, lat[v, t, i0 + 1, j0])
+            + mul(w11, lat[v, t, i0 + 1, j0 + 1]))
+
+
+@dev
+def keys_near(d):
+    # ((a + 2) d - (a + 3)) d d + 1
+    return mul(mul(mul(a + 2.0, d) - (a + 3.0), d), d) + 1.0
+
+
+@dev
+def keys_far(d):
+    # ((a d - 5 a) d + 8 a) d - 4 a
+    return mul(mul(mul(a, d) - 5.0 * a, d) + 8.0 * a, d) - 4.0 * a
+
+
+@dev
+def row4(img, v, r, ix, w0, w1, w2, w3):
+    row = mul(w0, f64(img[v, r, ix - 1]))
+    row += mul(w1, f64(img[v, r, ix]))
+    row += mul(w2, f64(img[v, r, ix + 1]))
+    row += mul(w3, f64(img[v, r, ix + 2]))
+    return row
+
+
+@dev
+def sample(img, v, h, w, y, x, cubic):
+    """tiledsm.match.sampling.interpolate (bicubic: the arithmetic of
+    tiledsm.match.sweep._bicubic_many)."""
+    if math.isnan(y) or math.isnan(x) or math.isinf(y) or math.isinf(x):
+        return f32(math.nan)
+    if cubic:
+        # floor(y) >= 1 and floor(y) + 2 < h, tested before flooring
+        if not (y >= 1.0 and x >= 1.0 and y < h - 2.0 and x < w - 2.0):
+            return f32(math.nan)
+        iy = int(math.floor(y))
+        ix = int(math.floor(x))
+        fy = y - iy
+        fx = x - ix
+        wy0, wy1, wy2, wy3 = keys_far(fy + 1.0), keys_near(fy), keys_near(1.0 - fy), keys_far(2.0 - fy)
+        wx0, wx1, wx2, wx3 = keys_far(fx + 1.0), keys_near(fx), keys_near(1.0 - fx), keys_far(2.0 - fx)
+        acc = 0.0
+        acc += mul(wy0, row4(img, v, iy - 1, ix, wx0, wx1, wx2, wx3))
+        acc += mul(wy1, row4(img, v, iy, ix, wx0, wx1, wx2, wx3))
+        acc += mul(wy2, row4(img, v, iy + 1, ix, wx0, wx1, wx2, wx3))
+        acc += mul(wy3, row4(img, v, iy + 2, ix, wx0, wx1, wx2, wx3))
+        return f32(acc)
+    if not (y >= 0.0 and x >= 0.0 and y < h - 1.0 and x < w - 1.0):
+        return f32(math.nan)
+    iy = int(math.floor(y))
+    ix = int(math.floor(x))
+    fy = y - iy
+    fx = x - ix
+    top = f64(img[v, iy, ix]) + mul(fx, f64(img[v, iy, ix + 1] - img[v, iy, ix]))
+    bot = f64(img[v, iy + 1, ix]) + mul(fx, f64(img[v, iy + 1, ix + 1] - img[v, iy + 1, ix]))
+    return f32(top + mul(fy, bot - top))
+
+
+@cuda.jit
+def sample_kernel(imgs, shapes, lat_r, lat_c, stride, k0, dh, href, step, gi0, gj0, n0i, n0j, win_r, win_c,
+                  cubic, lo, hi, out):
+    """``out[v, i, j, k]``: view ``v``'s sample of cell ``[i, j]`` at
+    label ``lo[i, j] + k`` (tiledsm.match.sweep._sample_row)."""
+    ny, nx = href.shape
+    ns = out.shape[3]
+    t = cuda.grid(1)
+    if t >= ny * nx * ns:
+        return
+    k = t % ns
+    cell = t // ns
+    i = cell // nx
+    j = cell - i * nx
+    if lo[i, j] + k > hi[i, j]:
+        return
+    nh = lat_r.shape[1]
+    gy = lat_r.shape[2]
+    gx = lat_r.shape[3]
+    i0, fy = lattice_cell(gi0 + i, stride, n0i, gy)
+    j0, fx = lattice_cell(gj0 + j, stride, n0j, gx)
+    w00 = mul(1 - fy, 1 - fx)
+    w01 = mul(1 - fy, fx)
+    w10 = mul(fy, 1 - fx)
+    w11 = mul(fy, fx)
+    tt = (href[i, j] + mul(f64(lo[i, j] + k), step)) / dh
+    t0, ft = lattice_segment(tt, k0, nh)
+    for v in range(out.shape[0]):
+        ar = bilinear(lat_r, v, t0, i0, j0, w00, w01, w10, w11)
+        br = bilinear(lat_r, v, t0 + 1, i0, j0, w00, w01, w10, w11)
+        ac = bilinear(lat_c, v, t0, i0, j0, w00, w01, w10, w11)
+        bc = bilinear(lat_c, v, t0 + 1, i0, j0, w00, w01, w10, w11)
+        y = ar + mul(ft, br - ar) - win_r[v]
+        x = ac + mul(ft, bc - ac) - win_c[v]
+        out[v, i, j, k] = sample(imgs, v, shapes[v, 0], shapes[v, 1], y, x, cubic)
+
+
+@dev
+def zncc(s_a, s_b, s_aa, s_bb, s_ab, inv_n, eps):
+    # tiledsm.match.sweep._zncc
+    va = s_aa - mul(mul(s_a, s_a), inv_n)
+    vb = s_bb - mul(mul(s_b, s_b), inv_n)
+    prod = va * vb
+    if not prod > 0.0:
+        # a flat or nodata window (the CPU kernel's IEEE division gives
+        # a non-finite c there, rejected below)
+        return f32(math.nan)
+    c = (s_ab - mul(mul(s_a, s_b), inv_n)) / math.sqrt(prod)
+    if c > 1.0:
+        c = 1.0
+    elif c < -1.0:
+        c = -1.0
+    if va > eps * (1.0 + s_aa) and vb > eps * (1.0 + s_bb) and c == c:
+        return f32(1.0 - c)
+    return f32(math.nan)
+
+
+@cuda.jit
+def zncc_kernel(samp, lo, base, nvalid, half, pair_u, pair_v, pair_w, eps, vol):
+    """``vol[i, j, k]`` of the cells whose window lies in the block
+    (tiledsm.match.sweep._zncc_row): window sums at the candidate's
+    label, columns of rows top to bottom, columns left to right."""
+    ny, nx, nd = vol.shape
+    t = cuda.grid(1)
+    if t >= ny * nx * nd:
+        return
+    k = t % nd
+    cell = t // nd
+    i = cell // nx
+    j = cell - i * nx
+    if k >= nvalid[i, j] or i < half or i >= ny - half or j < half or j >= nx - half:
+        return
+    wsz = 2 * half + 1
+    inv_n = 1.0 / (wsz * wsz)
+    label = base[i, j] + k
+    nv = samp.shape[0]
+    npairs = pair_u.shape[0]
+    if nv == 2:
+        sa = 0.0
+        sb = 0.0
+        saa = 0.0
+        sbb = 0.0
+        sab = 0.0
+        for c in range(j - half, j + half + 1):
+            c0 = 0.0
+            c1 = 0.0
+            c00 = 0.0
+            c11 = 0.0
+            c01 = 0.0
+            for r in range(i - half, i + half + 1):
+                off = label - lo[r, c]
+                x = f64(samp[0, r, c, off])
+                y = f64(samp[1, r, c, off])
+                c0 += x
+                c00 += mul(x, x)
+                c1 += y
+                c11 += mul(y, y)
+                c01 += mul(x, y)
+            sa += c0
+            sb += c1
+            saa += c00
+            sbb += c11
+            sab += c01
+        vol[i, j, k] = zncc(sa, sb, saa, sbb, sab, inv_n, eps)
+        return
+    # three or more views: each pair's ZNCC from its window sums,
+    # weighted (float32, as the compiled kernel's totals)
+    tot = f32(0.0)
+    cnt = f32(0.0)
+    for p in range(npairs):
+        u = pair_u[p]
+        w = pair_v[p]
+        sa = 0.0
+        sb = 0.0
+        saa = 0.0
+        sbb = 0.0
+        sab = 0.0
+        for c in range(j - half, j + half + 1):
+            c0 = 0.0
+            c1 = 0.0
+            c00 = 0.0
+            c11 = 0.0
+            c01 = 0.0
+            for r in range(i - half, i + half + 1):
+                off = label - lo[r, c]
+                x = f64(samp[u, r, c, off])
+                y = f64(samp[w, r, c, off])
+                c0 += x
+                c00 += mul(x, x)
+                c1 += y
+                c11 += mul(y, y)
+                c01 += mul(x, y)
+            sa += c0
+            sb += c1
+            saa += c00
+            sbb += c11
+            sab += c01
+        cst = zncc(sa, sb, saa, sbb, sab, inv_n, eps)
+        if cst == cst:
+            tot += mul32(pair_w[p], cst)
+            cnt += pair_w[p]
+    vol[i, j, k] = tot / cnt if cnt != 0 else f32(math.nan)
+
+
+@cuda.jit
+def fill_kernel(nvalid, vol):
+    """NaN for a cell's candidates (invalid until scored), MASKED_COST
+    beyond (tiledsm.match.sweep.empty_volume)."""
+    ny, nx, nd = vol.shape
+    t = cuda.grid(1)
+    if t >= ny * nx * nd:
+        return
+    k = t % nd
+    cell = t // nd
+    i = cell // nx
+    j = cell - i * nx
+    vol[i, j, k] = f32(math.nan) if k < nvalid[i, j] else masked
+
+
+@dev
+def smaller(x, y):
+    """``min(x, y)`` (numba's CUDA target lacks the two-argument builtin
+    here); Python's choice of the first on ties."""
+    return y if y < x else x
+
+
+@dev
+def restarts(g, sgn, period):
+    # tiledsm.match.paths.restarts
+    if period <= 0:
+        return False
+    if sgn > 0:
+        return g % period == 0
+    return (g + 1) % period == 0
+
+
+@dev
+def label_cost(buf, line, slot, l, n):
+    # a predecessor's path cost at its candidate l; +inf outside 0..n-1
+    return buf[line, slot, l] if 0 <= l < n else inf
+
+
+@cuda.jit
+def path_kernel(cost, base, nvalid, P1, P2, invalid, di, dj, gi0, gj0, period, round_min, S, buf):
+    """One path line per block: its cells in order, the candidates of
+    a cell spread over the block's threads (tiledsm.match.paths._cell:
+    float64 path costs stored as float32, the predecessor's minimum in
+    float64 along a row, rounded to float32 across rows)."""
+    ny, nx, nd = cost.shape
+    line = cuda.blockIdx.x
+    tid = cuda.threadIdx.x
+    nthreads = cuda.blockDim.x
+    red = cuda.shared.array(1024, dtype=np.float64)
+    # the line's first cell: the one whose predecessor leaves the block
+    if di == 0:
+        i = line
+        j = 0 if dj > 0 else nx - 1
+    elif dj == 0:
+        i = 0 if di > 0 else ny - 1
+        j = line
+    elif line < nx:
+        i = 0 if di > 0 else ny - 1
+        j = line
+    else:
+        i = (0 if di > 0 else ny - 1) + di * (line - nx + 1)
+        j = 0 if dj > 0 else nx - 1
+    slot = 0
+    prev_min = 0.0
+    first_cell = True
+    while i >= 0 and i < ny and j >= 0 and j < nx:
+        n = nvalid[i, j]
+        if n > nd:
+            n = nd
+        pi = i - di
+        pj = j - dj
+        first = first_cell
+        if not first:
+            first = (di != 0 and restarts(gi0 + i, di, period)) or (dj != 0 and restarts(gj0 + j, dj, period))
+            first = first or nvalid[pi, pj] == 0
+        nq = 0
+        shift = 0
+        if not first:
+            nq = nvalid[pi, pj]
+            if nq > nd:
+                nq = nd
+            shift = base[i, j] - base[pi, pj]
+        m = math.inf
+        k = tid
+        while k < n:
+            c = cost[i, j, k]
+            if math.isnan(c) or math.isinf(c):
+                c = invalid
+            if first:
+                o = f64(c)
+            else:
+                l = shift + k
+                below = label_cost(buf, line, slot, l - 1, nq)
+                at = label_cost(buf, line, slot, l, nq)
+                above = label_cost(buf, line, slot, l + 1, nq)
+                side = smaller(below, above) + P1
+                tr = f64(smaller(at, side)) - prev_min
+                o = f64(c) + smaller(tr, f64(P2))
+            buf[line, 1 - slot, k] = f32(o)
+            S[i, j, k] += f32(o)
+            if o < m:
+                m = o
+            k += nthreads
+        # the block's minimum of the cell's path costs
+        red[tid] = m
+        cuda.syncthreads()
+        s = nthreads // 2
+        while s > 0:
+            if tid < s and red[tid + s] < red[tid]:
+                red[tid] = red[tid + s]
+            cuda.syncthreads()
+            s //= 2
+        m = red[0]
+        if n <= 0:
+            m = f64(inf)
+        if first:
+            m = f64(f32(m))  # a restart's minimum is a float32 cost
+        prev_min = f64(f32(m)) if round_min else m
+        cuda.syncthreads()  # red[0] read by all before the next cell writes it
+        slot = 1 - slot
+        first_cell = False
+        i += di
+        j += dj
+
+
+@cuda.jit
+def winner_kernel(S, cost, nvalid, index, smin, ratio, cbest):
+    """tiledsm.match.winner.best_of_cell, one thread per cell."""
+    ny, nx, nd = S.shape
+    t = cuda.grid(1)
+    if t >= ny * nx:
+        return
+    i = t // nx
+    j = t - i * nx
+    n = smaller(nvalid[i, j], nd)
+    kb = -1
+    bst = inf
+    for k in range(n):
+        v = S[i, j, k]
+        if v < bst:
+            bst = v
+            kb = k
+    if kb < 0:
+        index[i, j] = math.nan
+        smin[i, j] = math.nan
+        ratio[i, j] = math.nan
+        cbest[i, j] = math.nan
+        return
+    second = inf
+    for k in range(n):
+        if k < kb - 1 or k > kb + 1:
+            v = S[i, j, k]
+            if v < second:
+                second = v
+    off = 0.0
+    if 0 < kb < n - 1:
+        lo_ = S[i, j, kb - 1]
+        hi_ = S[i, j, kb + 1]
+        # float64 as numba types best_of_cell's arithmetic (explicit: the
+        # simulator's numpy scalars would keep float32)
+        den = f64(lo_) - mul(2.0, f64(bst)) + f64(hi_)
+        if den > 0:
+            off = 0.5 * f64(lo_ - hi_) / den
+    index[i, j] = kb + off
+    smin[i, j] = bst
+    ratio[i, j] = bst / second if second < inf and second > 0 else f32(0.0)
+    cbest[i, j] = cost[i, j, kb]
