@@ -31,9 +31,15 @@ GENERATED = "reference"
 # --------------------------------------------------------------------------- helpers
 
 
+def _rst_to_md(text: str) -> str:
+    """Docstring markup (numpydoc/RST) as markdown: ``x`` and :role:`x` -> `x`."""
+    text = re.sub(r":\w+:`~?([^`]+)`", r"`\1`", text)
+    return re.sub(r"``([^`]+)``", r"`\1`", text)
+
+
 def _cell(text: Any) -> str:
     """One markdown table cell: no newline, no unescaped pipe."""
-    s = " ".join(str(text).split())
+    s = _rst_to_md(" ".join(str(text).split()))
     return s.replace("|", "\\|")
 
 
@@ -157,7 +163,7 @@ def _type_name(annotation: Any) -> str:
         name = " or ".join(_type_name(a) for a in inner)
         return f"{name} (optional)" if len(inner) < len(args) else name
     if origin is typing.Literal:
-        return " \\| ".join(repr(a) for a in args)
+        return " | ".join(repr(a) for a in args)
     if origin in (list, tuple, dict):
         if origin is tuple and args and args[-1] is Ellipsis:
             return f"tuple of {_type_name(args[0])}"
@@ -220,30 +226,102 @@ def _field_descriptions(model: type) -> dict[str, str]:
     return found
 
 
+#: recipe fields that hold the fields of a dataclass (validated by name against it):
+#: ``(model, field) -> "module:Class"``; their entries are listed under the field
+DATACLASS_FIELDS = {
+    ("MatchSpec", "params"): "tiledsm.match.sgvll:SGVLLParams",
+    ("TrainSRRecipe", "train"): "tiledsm.sr.train:TrainConfig",
+}
+
+#: descriptions of the fields whose model gives none (``Model.field``); a test checks
+#: that every key still names a field, so a renamed field cannot leave one behind
+FALLBACK_DESCRIPTIONS = {
+    "pipeline": "the pipeline this recipe runs",
+    "name": "a name for the run, written into its metrics",
+    "SynthInput.seed": "random seed of the synthetic scene",
+    "SynthInput.views": "number of views",
+    "SynthInput.event": "also render a post-event scene (a fault and an uplift)",
+    "EventSynthInput.seed": "random seed of the synthetic scene",
+    "EventSynthInput.views": "number of views of each pair",
+    "EventSynthInput.event": "render the post-event scene (always, for a deformation run)",
+    "UAVSynthSpec.seed": "random seed of the synthetic block",
+    "InputSpec.images": "images with RPCs (in their tags or a sidecar), two or more",
+    "InputSpec.rpcs": "one RPC file per image (or null: the image's own), overriding the tags",
+    "PairInput.images": "the epoch's images with RPCs, two or more",
+    "PairInput.rpcs": "one RPC file per image (or null: the image's own)",
+    "GridSpec.crs": "CRS of the grid, e.g. EPSG:32631 (default: UTM zone of the scene centre)",
+    "MatchSpec.height_range": "scene height range, ellipsoidal metres (default: from tie points)",
+    "MatchSpec.height_margin": "metres added around the tie points' height range",
+    "MatchSpec.relative_correction": "correct the relative pointing error of the RPCs from tie points",
+    "ClusterSpec.kind": "where the run computes: local cluster, an existing scheduler (address), or batch jobs",
+    "ClusterSpec.workers": "local workers (kind local; default one per core)",
+    "JobQueueSpec.queue": "partition / queue of the jobs",
+    "JobQueueSpec.account": "project or account charged (not for SGE: use job_extra_directives)",
+    "JobQueueSpec.processes": "workers per job (default: cores, single-threaded workers)",
+    "JobQueueSpec.job_extra_directives": "extra scheduler directives, e.g. --constraint=skylake",
+    "JobQueueSpec.minimum_jobs": "fewest jobs kept (jobs are submitted adaptively)",
+    "JobQueueSpec.maximum_jobs": "most jobs submitted",
+    "JobQueueSpec.local_directory": "worker scratch space on the node, e.g. $TMPDIR",
+    "JobQueueSpec.interface": "network interface of the workers, e.g. ib0",
+    "JobQueueSpec.python": "Python on the nodes (default: the one running tiledsm)",
+    "OutputSpec.cog": "write Cloud-Optimised GeoTIFFs of the products",
+    "OutputSpec.quicklook": "write quick-look PNGs",
+    "CompareSpec.deramp": "also remove a plane fitted on stable terrain",
+    "MISRSpec.dsm_noise_seed": "seed of the noise added to the DSM in the noisy-DSM rows",
+    "TrainSRRecipe.train": "the training parameters: the fields of TrainConfig, listed below",
+}
+
+
+def _dataclass(spec: str):
+    import importlib
+
+    module, name = spec.split(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def _summary(model: type) -> str:
+    doc = inspect.getdoc(model) or ""
+    return " ".join(doc.split("\n\n")[0].split())
+
+
 def recipe_fields(model: type, prefix: str = "") -> list[tuple[str, str, str, str, type]]:
     """``(path, type, default, description, owner model)`` of every field of
-    ``model``, nested sections expanded depth first (``grid.chunk``)."""
+    ``model``, nested sections expanded depth first (``grid.chunk``), and
+    the fields of :data:`DATACLASS_FIELDS` under their dict field."""
     rows = []
     described = _field_descriptions(model)
     for name, field in model.model_fields.items():
         path = f"{prefix}{name}"
-        desc = field.description or described.get(name, "")
+        nested = _models_in(field.annotation)
+        desc = (field.description or described.get(name) or FALLBACK_DESCRIPTIONS.get(f"{model.__name__}.{name}")
+                or FALLBACK_DESCRIPTIONS.get(name) or (_summary(nested[0]) if nested else ""))
         constraints = _constraints(field)
         if constraints:
             desc = f"{desc} ({constraints})" if desc else f"({constraints})"
         rows.append((path, _type_name(field.annotation), _default(field), desc, model))
-        for sub in _models_in(field.annotation):
+        for sub in nested:
             rows += recipe_fields(sub, prefix=f"{path}.")
+        spec = DATACLASS_FIELDS.get((model.__name__, name))
+        if spec:
+            rows += dataclass_fields(_dataclass(spec), f"{path}.", model)
     return rows
 
 
-def matching_params() -> list[tuple[str, str, str, str]]:
-    """``match.params``: the fields of :class:`~tiledsm.match.sgvll.SGVLLParams`."""
-    from tiledsm.match.sgvll import SGVLLParams
-
-    described = _numpydoc_attributes(SGVLLParams.__doc__)
-    return [(f"match.params.{f.name}", _type_name(f.type if not isinstance(f.type, str) else eval(f.type)),
-             _code(f.default), described.get(f.name, "")) for f in dataclasses.fields(SGVLLParams)]
+def dataclass_fields(cls: type, prefix: str, owner: type) -> list[tuple[str, str, str, str, type]]:
+    """The fields of a dataclass held in a recipe's dict field, described by
+    the ``Attributes`` of its docstring."""
+    described = _numpydoc_attributes(cls.__doc__)
+    hints = typing.get_type_hints(cls)
+    rows = []
+    for f in dataclasses.fields(cls):
+        if f.default is not dataclasses.MISSING:
+            default = _code(f.default)
+        elif f.default_factory is not dataclasses.MISSING:
+            default = _code(f.default_factory())
+        else:
+            default = "required"
+        rows.append((f"{prefix}{f.name}", _type_name(hints.get(f.name, f.type)), default, described.get(f.name, ""), owner))
+    return rows
 
 
 def recipe_reference() -> str:
@@ -260,17 +338,14 @@ def recipe_reference() -> str:
         "(metres, pixels, cells, degrees).\n",
         _table(["pipeline", "recipe model", "what it runs"],
                [[f"[`{n}`](#pipeline-{n})", _code(p.recipe.__name__),
-                 (inspect.getdoc(p.recipe) or "").split("\n")[0]] for n, p in PIPELINES.items()]),
+                 _summary(p.recipe)] for n, p in PIPELINES.items()]),
     ]
     for name, pipeline in PIPELINES.items():
         out.append(f"## pipeline: {name}\n")
         doc = inspect.getdoc(pipeline.recipe)
         if doc:
-            out.append(" ".join(doc.split("\n\n")[0].split()) + "\n")
+            out.append(_rst_to_md(" ".join(doc.split("\n\n")[0].split())) + "\n")
         rows = [[_code(p), t, d, desc] for p, t, d, desc, _ in recipe_fields(pipeline.recipe)]
-        if any(r[0] == "`match`" for r in rows):
-            at = next(i for i, r in enumerate(rows) if r[0] == "`match.params`") + 1
-            rows[at:at] = [[_code(p), t, d, desc] for p, t, d, desc in matching_params()]
         out.append(_table(["field", "type", "default", "description"], rows))
     return "\n".join(out)
 
