@@ -572,7 +572,7 @@ def headline_pages() -> dict[str, str]:
     return {
         f"{GENERATED}/accuracy.md": "# Accuracy\n\nGenerated from `benchmarks/results/*.json` when the site is built "
         "(the commands are in each file's section of [Results files](results.md)). What the numbers mean "
-        "and how they compare with peers: [DSM guide](../guides/dsm.md#accuracy), "
+        "and how they compare with peers: [DSM guide](../guides/dsm.md#measured), "
         "[Benchmarks](../benchmarks.md).\n\n" + headline_table(ACCURACY),
         f"{GENERATED}/speed.md": "# Speed\n\nGenerated from `benchmarks/results/*.json` when the site is built, on "
         "the project's 2-core machine (its speed drifts by 30-50 % within an hour: compare runs of one "
