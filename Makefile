@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test install clean
+.PHONY: demo test docs install clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -14,7 +14,7 @@ $(BIN)/python:
 # build, whereas a bare `torch` resolved by pip pulls a multi-GB CUDA build.
 $(STAMP): $(BIN)/python pyproject.toml
 	$(BIN)/pip install torch==2.13.0
-	$(BIN)/pip install -e '.[test]'
+	$(BIN)/pip install -e '.[test,docs]'
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -22,8 +22,13 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/tiledsm run recipes/demo.yaml --out runs/demo
 
-test: $(STAMP)
+# the documentation site, strict: a broken link, a missing reference or a warning fails it
+# (NO_MKDOCS_2_WARNING: Material's notice about MkDocs 2.0 is not a problem of this site)
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/python -m mkdocs build --strict --quiet
+
+test: $(STAMP) docs
 	$(BIN)/python -m pytest -q -ra
 
 clean:
-	rm -rf runs .pytest_cache
+	rm -rf runs .pytest_cache site

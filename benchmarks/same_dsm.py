@@ -10,7 +10,7 @@ Usage::
 
     .venv/bin/python benchmarks/same_dsm.py --rev b0a8ef9 [--workers 2]
 
-Prints a table and writes ``benchmarks/results/same_dsm_s2p.json``.
+Prints a table and writes ``benchmarks/results/same_dsm.json``.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rev", required=True, help="git revision to compare the working tree with")
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "same_dsm_s2p.json"))
+    ap.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "same_dsm.json"))
     args = ap.parse_args()
     if not PAIR.is_dir():
         raise SystemExit(f"{PAIR}: not found (set TILEDSM_SHARED_DATA)")

@@ -15,7 +15,7 @@ whose heights differ by more than 1e-3 m (at most 0.1 %).
 Usage::
 
     .venv/bin/python benchmarks/torch_kernel.py --devices cpu
-    .venv/bin/python benchmarks/torch_kernel.py --devices cuda --size 2048 --json benchmarks/results/torch_kernel_cuda.json
+    .venv/bin/python benchmarks/torch_kernel.py --devices cuda --size 2048 --json benchmarks/results/torch_kernel.json
 
 Prints a markdown table and writes ``--json``.
 """

@@ -10,7 +10,7 @@ the top of its table.
 
 Usage::
 
-    python3 benchmarks/torch_kernel_split.py cuda 1024 benchmarks/results/torch_kernel_cuda_split.json
+    python3 benchmarks/torch_kernel_split.py cuda 1024 benchmarks/results/torch_kernel_split.json
 
 Prints per task and writes the JSON (argument 3).
 """

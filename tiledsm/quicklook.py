@@ -154,6 +154,8 @@ def quicklook(
         Robust limit for differences (and colour range of heights: the
         ``100 - percentile`` .. ``percentile`` range).
 
+    Notes
+    -----
     Cells without a value are drawn in :data:`NAN_COLOUR` (magenta).
     """
     from matplotlib import colormaps

@@ -30,10 +30,9 @@ class DSMParams:
         completeness next to buildings, so it is used only when the search
         is wide).
     max_candidates : int
-        See ``levels``. 128: ``s2p_pair`` (136 heights) then matches in 2
-        levels, the whole command 12.0 -> 7.6 s at the same NMAD against
-        s2p's DSM (``benchmarks/blunders.py``); the demo scene (126) stays
-        at one (in 2 it lost a point of completeness).
+        See ``levels``. 128: the real pair (136 heights) is matched in 2
+        levels, faster at the same NMAD, while the demo scene (126) keeps
+        one (docs: decisions/labels.md).
     height_range : (float, float) or None
         Scene height range (ellipsoidal metres); ``None`` estimates it from
         tie points.

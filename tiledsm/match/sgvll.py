@@ -70,23 +70,15 @@ class SGVLLParams:
     P1, P2 : float
         SGM penalties in cost units (cost = 1 - ZNCC, 0..2) for a change of
         one height step / more than one step between path neighbours.
-        Measured on the real ``s2p_pair`` against s2p's DSM
-        (``benchmarks/blunders.py`` scoring): P1 0.2 -> 0.3 took the NMAD
-        from 0.300 to 0.294 m and the RMSE from 0.456 to 0.441 m, for
-        0.3 % of completeness; P2 3.0 gave back that completeness but
-        doubled the cells off by > 10 m.
+        P1 0.3 lowers the real pair's NMAD and RMSE for little completeness
+        (docs: decisions/speckle-slope.md, which gives the measurements).
     step_px : float
         Height step expressed in parallax: one step moves the projections
         of the best-separated view pair apart by about ``step_px`` pixels.
     zncc_min : float
         Cells whose winning (unaggregated) ZNCC is below this are NaN.
-        Measured on the real ``s2p_pair`` against s2p's DSM
-        (``benchmarks/blunders.py``, full overlap, and on s2p's grid):
-        0.3 / 0.25 / 0.2 gave completeness 94.4 / 95.3 / 95.9 % (s2p's
-        grid: 94.2 / 95.1 / 95.7 %, NMAD there 0.301 / 0.302 / 0.303 m), and
-        cells off by > 10 m 0.0065 / 0.009 / 0.012 %: 0.25 is the lowest
-        value within issue 9's 0.01 %. On a synthetic pair the visible
-        ground's NMAD did not change (0.215 m).
+        0.25 is the lowest value that keeps the real pair's cells off by
+        more than 10 m within 0.01 % (docs: decisions/zncc-min.md).
     ratio_max : float
         Cells whose aggregated peak ratio ``S_best / S_second`` exceeds this
         (ambiguous minimum) are NaN.
@@ -95,18 +87,14 @@ class SGVLLParams:
         range (the true height is probably outside it).
     speckle_size : int
         Connected components of fewer cells than this are removed
-        (:meth:`speckle_max_diff` says which neighbours are connected). On
-        the real ``s2p_pair``, tiledsm's gross errors (> 10 m) were patches
-        of up to 96 cells on shadowed, low-texture slopes next to holes
-        (``benchmarks/blunders.py``); 150 cells leaves a margin above that.
+        (:meth:`speckle_max_diff` says which neighbours are connected);
+        150 cells is above the largest blunder patch of the real pair
+        (docs: decisions/speckle-slope.md).
     speckle_slope : float
         Neighbours are connected when the slope between them is at most
         this, degrees: a blunder patch meets the terrain around it in a
-        step steeper than any slope, whereas a 45 degree hillside stays
-        one component. Measured on ``s2p_pair`` (0.5 m cells, 0.96 m
-        steps): 60 degrees (0.87 m) takes cells off by > 10 m from
-        0.062 % to 0.006 % for 0.6 % of completeness; two height steps
-        (1.9 m), the former rule, left 0.061 %.
+        step steeper than any hillside, whereas a 45 degree hillside stays
+        one component (docs: decisions/speckle-slope.md).
     speckle_steps : float
         ... but never less than this many height steps (the sub-step
         noise of a flat area must not split it).
@@ -129,6 +117,9 @@ class SGVLLParams:
         With three or more views, weight each pair's ZNCC by its squared
         parallax per metre of height (inverse variance; see
         :func:`tiledsm.match.cost.mean_zncc_cost`); ``False``: plain mean.
+        Weighted, a third view at half the base keeps the NMAD of two wide
+        views better than a plain mean (docs: guides/dsm.md, two vs three
+        views; ``benchmarks/views.py``).
     kernel : str
         Implementation of the sweep and aggregation (:data:`KERNELS`):
         ``"fast"`` (:mod:`tiledsm.match.sweep`: compiled candidate loop,
@@ -148,10 +139,6 @@ class SGVLLParams:
         result depends only on cells within this distance, so tiles with
         this halo are exact; 0 = paths never restart (tiles then differ
         slightly near their borders).
-        Measured on a 512 px synthetic scene with a middle view (B/H 0.4,
-        0.2, 0.2), visible ground: NMAD 0.33 m plain, 0.28 m weighted
-        (two views alone: 0.26 m, with 1 % less completeness and a worse
-        RMSE).
     """
 
     window: int = 5

@@ -16,8 +16,8 @@ WORKER_BASELINE_MIB = 270
 #: host memory a process adds once torch has set up a CUDA device, MiB:
 #: measured on an H200 machine, a DSM run matching through torch on the GPU
 #: peaked 767 MiB (s2p pair) and 794 MiB (4096² scene) above the same run
-#: matching on its CPU (benchmarks/results/dsm_s2p_cuda_h200.json,
-#: dsm_cuda_h200.json)
+#: matching on its CPU (benchmarks/dsm.py --devices cpu cuda; the results are
+#: in git: git show c7ac1d7:benchmarks/results/dsm_cuda_h200.json)
 CUDA_CONTEXT_MIB = 780
 
 
