@@ -35,6 +35,7 @@ import argparse
 import dataclasses
 import json
 import platform
+import resource
 import sys
 import time
 from pathlib import Path
@@ -174,6 +175,9 @@ def main(argv: list[str] | None = None) -> int:
                    "mcells_per_s": ny * nx / (tv + tw) / 1e6}
             if kernel != args.kernels[0]:
                 row["agreement"] = agreement(res[args.kernels[0]], out, float(vargs[7]))
+            # the process's peak so far: after the first kernel's runs, the
+            # growth is what the next one adds (a CUDA context, say)
+            row["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
             rows.append(row)
     print("| task | kernel | cells | cost volume (s) | aggregation + winners (s) | Mcells/s | validity differs | off > 1 mm |")
     print("|---|---|---|---|---|---|---|---|")

@@ -585,8 +585,7 @@ def test_worker_memory_formula():
 
 
 def test_worker_baseline_counts_the_cuda_context():
-    """A worker matching through torch on a CUDA device holds the CUDA
-    context besides the usual baseline (measured: 767-794 MiB more than
+    """A worker matching on a CUDA device holds the CUDA context besides the usual baseline (measured: 767-794 MiB more than
     the same run on the CPU); on the CPU, with either kernel, it does not."""
     from types import SimpleNamespace
 
@@ -594,9 +593,9 @@ def test_worker_baseline_counts_the_cuda_context():
     from tiledsm.plan.memory import CUDA_CONTEXT_MIB, WORKER_BASELINE_MIB, worker_baseline
 
     assert worker_baseline(SGVLLParams()) == WORKER_BASELINE_MIB * 2**20
-    assert worker_baseline(SGVLLParams(kernel="torch", device="cpu")) == WORKER_BASELINE_MIB * 2**20
-    # SGVLLParams refuses a CUDA device where torch sees none (as here): its two fields stand in
-    on_gpu = SimpleNamespace(kernel="torch", device="cuda:0")
+    assert worker_baseline(SGVLLParams(kernel="reference")) == WORKER_BASELINE_MIB * 2**20
+    # SGVLLParams refuses a CUDA device where numba sees none (as here): its two fields stand in
+    on_gpu = SimpleNamespace(kernel="cuda", device="cuda:0")
     assert worker_baseline(on_gpu) == (WORKER_BASELINE_MIB + CUDA_CONTEXT_MIB) * 2**20
 
 

@@ -29,8 +29,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--height-range", type=float, nargs=2, default=None, metavar=("HMIN", "HMAX"), help="ellipsoidal metres; default: from tie points")
     p.add_argument("--reference", default=None, help="reference DSM for metrics (same vertical datum as the output)")
     p.add_argument("--device", default="cpu",
-                   help="where matching runs: cpu (the compiled kernel, default) or a torch device such as cuda, "
-                        "cuda:1 (the torch kernel: cost volume and aggregation on that device)")
+                   help="where matching runs: cpu (the compiled kernel, default) or a CUDA GPU, cuda or cuda:N "
+                        "(the same matching as compiled CUDA kernels on that GPU, the same heights)")
     p.add_argument("--geoid", default=None, help="geoid grid (e.g. egm96_15.gtx): write heights above the geoid instead of the WGS84 ellipsoid")
     add_cluster_arguments(p, default_scheduler="threads")
     add_overwrite_argument(p)
@@ -70,7 +70,7 @@ def dsm_recipe(args: argparse.Namespace):
             "input": {"images": [_absolute(p) for p in args.images], "reference": _absolute(args.reference)},
             "grid": {k: v for k, v in grid.items() if v is not None},
             "match": {"levels": args.levels, "height_range": args.height_range,
-                      "params": {} if args.device == "cpu" else {"kernel": "torch", "device": args.device}},
+                      "params": {} if args.device == "cpu" else {"kernel": "cuda", "device": args.device}},
             "output": {"geoid": _absolute(args.geoid)},
         })
     except ValidationError as exc:

@@ -2,7 +2,7 @@
 
 The heavy steps of :func:`tiledsm.match.sgvll.match_block` on an NVIDIA
 GPU, one launch per step over the whole block instead of tensor
-operations in Python loops (:mod:`tiledsm.match.torch_kernel`):
+operations in Python loops:
 
 1. **Samples** (:func:`_sample_kernel`): one thread per (cell, label of its
    sample hull, :func:`~tiledsm.match.sweep.sample_hull`) computes the

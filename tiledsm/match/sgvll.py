@@ -44,7 +44,7 @@ from tiledsm.geometry import RPC
 from tiledsm.match.cost import mean_zncc_cost
 from tiledsm.match.sampling import sample_view
 from tiledsm.match.sgm import aggregate, aggregate_best, remove_speckles
-from tiledsm.match import cuda_kernel, torch_kernel
+from tiledsm.match import cuda_kernel
 from tiledsm.match.kernels import KERNELS, MatchKernel, register_kernel
 from tiledsm.match.sweep import MASKED_COST, cost_volume
 
@@ -124,15 +124,14 @@ class SGVLLParams:
         Implementation of the sweep and aggregation (:data:`KERNELS`):
         ``"fast"`` (:mod:`tiledsm.match.sweep`: compiled candidate loop,
         only the candidates each cell needs), ``"reference"`` (the plain
-        per-height sweep it is tested against) or ``"torch"``
-        (:mod:`tiledsm.match.torch_kernel`: the fast kernel's arithmetic as
-        tensor operations, on ``device``) or ``"cuda"``
-        (:mod:`tiledsm.match.cuda_kernel`: compiled CUDA kernels, the volume
-        kept on the GPU).
+        per-height sweep it is tested against) or ``"cuda"``
+        (:mod:`tiledsm.match.cuda_kernel`: the fast kernel's arithmetic as
+        compiled CUDA kernels, the volume kept on the GPU; the same
+        heights bit for bit).
     device : str
-        Where the ``"torch"`` and ``"cuda"`` kernels run: ``"cpu"`` (torch
-        only), ``"cuda"``, ``"cuda:1"``... (``tiledsm dsm --device``); the
-        other kernels run on the CPU only.
+        Where the ``"cuda"`` kernel runs: ``"cuda"``, ``"cuda:1"``...
+        (``tiledsm dsm --device``); the other kernels run on the CPU
+        (``"cpu"``).
     path_period : int
         Semi-global paths restart every ``path_period`` cells on lines of
         the whole grid (:func:`tiledsm.match.sgm.aggregate`): each cell's
@@ -289,8 +288,6 @@ def cost_volume_reference(
 
 register_kernel("reference", MatchKernel(cost_volume_reference, aggregate))
 register_kernel("fast", MatchKernel(cost_volume, functools.partial(aggregate, fast=True), best=aggregate_best))
-register_kernel("torch", MatchKernel(torch_kernel.cost_volume, torch_kernel.aggregate, on_device=True,
-                                     check_device=torch_kernel.check_device))
 register_kernel("cuda", MatchKernel(cuda_kernel.cost_volume, cuda_kernel.aggregate, on_device=True,
                                     best=cuda_kernel.best, check_device=cuda_kernel.check_device))
 

@@ -175,8 +175,8 @@ def worker_baseline(match) -> int:
     """Bytes of a worker before its first task, for the matching
     parameters ``match`` (:class:`~tiledsm.match.sgvll.SGVLLParams`):
     :data:`WORKER_BASELINE_MIB`, plus :data:`CUDA_CONTEXT_MIB` when it
-    matches through torch on a CUDA device."""
-    on_cuda = match.kernel == "torch" and str(match.device).startswith("cuda")
+    matches on a CUDA device."""
+    on_cuda = str(match.device).startswith("cuda")
     return (WORKER_BASELINE_MIB + (CUDA_CONTEXT_MIB if on_cuda else 0)) * MIB
 
 

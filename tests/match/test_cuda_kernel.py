@@ -1,0 +1,108 @@
+"""The CUDA matching kernel (``kernel="cuda"``) against the compiled CPU one
+(``kernel="fast"``).
+
+Without a GPU the kernels run in numba's CUDA simulator
+(``NUMBA_ENABLE_CUDASIM=1``, set before numba starts, hence a child
+process): every launch, block and thread of the real kernels, the threads
+as Python threads. There the arithmetic is the CPU kernel's in the same
+types and order, so the volumes, aggregated costs, winners and heights
+must be equal bit for bit. On a GPU the kernels round every product on
+its own (no fused multiply-add), and ``benchmarks/cuda_kernel.py``
+measured the same equality there (``benchmarks/results/cuda_kernel.json``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from tiledsm.match.sgvll import SGVLLParams
+
+HERE = Path(__file__).resolve().parent
+
+#: run in the simulator: prints one JSON line of comparisons
+SIMULATED = textwrap.dedent(
+    """
+    import json
+    import numpy as np
+    from tiledsm.match import cuda_kernel
+    from tiledsm.match.sgm import aggregate, aggregate_best
+    from tiledsm.match.sgvll import SGVLLParams, match_block
+    from match_synthetic import CRS, band_with_holes, make_scene
+
+    out = {}
+    # a ragged volume: invalid costs, label shifts (some beyond the
+    # candidates), absent candidates, gaps, restart lines, a grid origin
+    rng = np.random.default_rng(3)
+    ny, nx, nd = 9, 8, 6
+    vol = (rng.random((ny, nx, nd)) * 2).astype(np.float32)
+    vol[rng.random(vol.shape) < 0.05] = np.nan
+    base = rng.integers(-3, 4, (ny, nx))
+    base[4] += 20
+    nvalid = rng.integers(1, nd + 1, (ny, nx))
+    nvalid[2, 3] = nvalid[6, 1] = 0
+    for name, kw in (("plain", {}), ("restarts", {"origin": (5, 70), "restart_period": 4})):
+        args = dict(base=base, nvalid=nvalid, invalid_cost=1.0, **kw)
+        S0 = aggregate(vol, 0.3, 2.0, fast=True, **args)
+        S1 = cuda_kernel.aggregate(vol, 0.3, 2.0, **args)
+        w0 = aggregate_best(vol, 0.3, 2.0, **args)
+        w1 = cuda_kernel.best(vol, 0.3, 2.0, **args)
+        out[name] = {"S_equal": bool(np.array_equal(S0, S1)), "finite": float(np.isfinite(S0).mean()),
+                     "winners_equal": [bool(np.array_equal(a, b, equal_nan=True)) for a, b in zip(w0, w1)]}
+    # blocks of a synthetic scene: bands around the truth, some cells not searched
+    for name, tilts, interp, rows, cols in (("2 views cubic", (0.4, -0.4), "cubic", slice(30, 42), slice(40, 51)),
+                                            ("3 views linear", (0.4, 0.0, -0.4), "linear", slice(30, 39), slice(40, 49))):
+        sc = make_scene(tilts=tilts, seed=2)
+        gx, gy, truth, lo, hi, kw = band_with_holes(sc, rows, cols, (slice(3, 5), slice(4, 6)))
+        res = {}
+        for kernel in ("fast", "cuda"):
+            p = SGVLLParams(kernel=kernel, interpolation=interp, speckle_size=0,
+                            **({"device": "cuda"} if kernel == "cuda" else {}))
+            d = {}
+            h, c = match_block(sc.images, sc.rpcs, None, gx, gy, CRS, lo, hi, p, details=d, **kw)
+            res[kernel] = (h, c, d["n_samples"])
+        (h0, c0, n0), (h1, c1, n1) = res["fast"], res["cuda"]
+        out[name] = {"heights_equal": bool(np.array_equal(h0, h1, equal_nan=True)),
+                     "confidence_equal": bool(np.array_equal(c0, c1, equal_nan=True)),
+                     "samples_equal": n0 == n1, "valid": float(np.isfinite(h0).mean()),
+                     "median_error_m": float(np.nanmedian(np.abs(h0 - truth)))}
+    print(json.dumps(out))
+    """
+)
+
+
+@pytest.mark.slow
+def test_cuda_kernel_in_the_simulator_gives_the_cpu_kernels_results_bit_for_bit():
+    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1",
+           "PYTHONPATH": os.pathsep.join(p for p in (str(HERE), os.environ.get("PYTHONPATH", "")) if p)}
+    run = subprocess.run([sys.executable, "-c", SIMULATED], env=env, capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0, run.stderr[-4000:]
+    out = json.loads(run.stdout.strip().splitlines()[-1])
+    for name in ("plain", "restarts"):
+        assert out[name]["S_equal"] and all(out[name]["winners_equal"]), (name, out[name])
+        # +inf where a cell lacks the candidate: not all finite, not none
+        assert 0.4 < out[name]["finite"] < 0.9
+    for name in ("2 views cubic", "3 views linear"):
+        r = out[name]
+        assert r["heights_equal"] and r["confidence_equal"] and r["samples_equal"], (name, r)
+        # a real match, not two empty maps: measured 0.36 / 0.33 of the
+        # cells (windows and edges of a small block), median error 0.05 m
+        assert r["valid"] > 0.25 and r["median_error_m"] < 0.1, (name, r)
+
+
+def test_cuda_kernel_names_a_device_it_cannot_use():
+    with pytest.raises(ValueError, match="'gpu7'.*cuda or cuda:N"):
+        SGVLLParams(kernel="cuda", device="gpu7")
+    from numba import cuda
+
+    if not cuda.is_available():
+        with pytest.raises(ValueError, match="'cuda'.*numba sees no CUDA GPU"):
+            SGVLLParams(kernel="cuda", device="cuda")
+    with pytest.raises(ValueError, match="runs on the CPU only"):
+        SGVLLParams(kernel="fast", device="cuda")
