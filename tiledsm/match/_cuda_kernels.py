@@ -137,7 +137,7 @@ def sample(img, v, h, w, y, x, cubic):
     return f32(top + mul(fy, bot - top))
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def sample_kernel(imgs, shapes, lat_r, lat_c, stride, k0, dh, href, step, gi0, gj0, n0i, n0j, win_r, win_c,
                   cubic, lo, hi, out):
     """``out[v, i, j, k]``: view ``v``'s sample of cell ``[i, j]`` at
@@ -194,7 +194,7 @@ def zncc(s_a, s_b, s_aa, s_bb, s_ab, inv_n, eps):
     return f32(math.nan)
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def zncc_kernel(samp, lo, base, nvalid, half, pair_u, pair_v, pair_w, eps, vol):
     """``vol[i, j, k]`` of the cells whose window lies in the block
     (tiledsm.match.sweep._zncc_row): window sums at the candidate's
@@ -281,7 +281,7 @@ def zncc_kernel(samp, lo, base, nvalid, half, pair_u, pair_v, pair_w, eps, vol):
     vol[i, j, k] = tot / cnt if cnt != 0 else f32(math.nan)
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def fill_kernel(nvalid, vol):
     """NaN for a cell's candidates (invalid until scored), MASKED_COST
     beyond (tiledsm.match.sweep.empty_volume)."""
@@ -319,7 +319,7 @@ def label_cost(buf, line, slot, l, n):
     return buf[line, slot, l] if 0 <= l < n else inf
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def path_kernel(cost, base, nvalid, P1, P2, invalid, di, dj, gi0, gj0, period, round_min, S, buf):
     """One path line per block: its cells in order, the candidates of
     a cell spread over the block's threads (tiledsm.match.paths._cell:
@@ -406,7 +406,7 @@ def path_kernel(cost, base, nvalid, P1, P2, invalid, di, dj, gi0, gj0, period, r
         j += dj
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def winner_kernel(S, cost, nvalid, index, smin, ratio, cbest):
     """tiledsm.match.winner.best_of_cell, one thread per cell."""
     ny, nx, nd = S.shape
