@@ -41,6 +41,7 @@ device="cuda")``.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -126,6 +127,27 @@ def _launch(n: int) -> tuple[int, int]:
     return max(1, (n + threads - 1) // threads), threads
 
 
+#: (kernel, context) pairs launched once: their module is loaded there
+_LOADED: set = set()
+_LOADING = threading.Lock()
+
+
+def _run(kernel, grid: tuple[int, int], *args) -> None:
+    """Launch ``kernel[grid](*args)``. A kernel's first launch in a CUDA
+    context loads its module there, which numba-cuda does not guard against
+    threads: sixteen dask threads starting their first task together failed
+    with "key already in dictionary: <CUlibrary ...>" (an H100, kernels
+    from the disk cache). First launches are therefore taken one at a
+    time."""
+    key = (kernel, 0 if _simulated() else id(_cuda().current_context()))
+    if key in _LOADED:
+        kernel[grid](*args)
+        return
+    with _LOADING:
+        kernel[grid](*args)
+        _LOADED.add(key)
+
+
 @dataclass
 class DeviceVolume:
     """A cost volume left on the GPU by :func:`cost_volume`.
@@ -169,7 +191,7 @@ def cost_volume(
     with _Selected(device) as cuda:
         vol = cuda.device_array((ny, nx, nd), np.float32)
         d_nvalid = cuda.to_device(nvalid)
-        fill_k[_launch(ny * nx * nd)](d_nvalid, vol)
+        _run(fill_k, _launch(ny * nx * nd), d_nvalid, vol)
         if ns <= 0:
             return DeviceVolume(vol, device)
         # the views' windows in one padded stack (their shapes alongside)
@@ -179,14 +201,14 @@ def cost_volume(
             stack[v, : im.shape[0], : im.shape[1]] = im
         d_lo = cuda.to_device(lo)
         samp = cuda.device_array((nv, ny, nx, ns), np.float32)
-        sample_k[_launch(ny * nx * ns)](
+        _run(sample_k, _launch(ny * nx * ns),
             cuda.to_device(stack), cuda.to_device(shapes), cuda.to_device(np.ascontiguousarray(lat_r, np.float64)),
             cuda.to_device(np.ascontiguousarray(lat_c, np.float64)), int(stride), int(k0), float(dh),
             cuda.to_device(np.ascontiguousarray(href, np.float64)), float(step), int(origin[0]), int(origin[1]),
             int(nodes0[0]), int(nodes0[1]), cuda.to_device(np.asarray(win_r, np.float64)),
             cuda.to_device(np.asarray(win_c, np.float64)), bool(cubic), d_lo, cuda.to_device(hi), samp,
         )
-        zncc_k[_launch(ny * nx * nd)](
+        _run(zncc_k, _launch(ny * nx * nd),
             samp, d_lo, cuda.to_device(base), d_nvalid, int(half),
             cuda.to_device(np.array([p[0] for p in pairs], np.int64)),
             cuda.to_device(np.array([p[1] for p in pairs], np.int64)), cuda.to_device(pw), float(eps), vol,
@@ -239,7 +261,7 @@ def _aggregated(cost, P1, P2, base, nvalid, invalid_cost, origin, restart_period
         lines = ny if di == 0 else nx if dj == 0 else nx + ny - 1
         buf = cuda.device_array((lines, 2, nd), np.float32)
         # the in-row paths keep their minimum in float64, the others in float32
-        path_k[lines, threads](d_cost, d_base, d_n, p1, p2, inv, di, dj, gi0, gj0, period, di != 0, S, buf)
+        _run(path_k, (lines, threads), d_cost, d_base, d_n, p1, p2, inv, di, dj, gi0, gj0, period, di != 0, S, buf)
     return S, d_cost, d_n
 
 
@@ -273,5 +295,5 @@ def best(
         S, d_cost, d_n = _aggregated(cost, P1, P2, base, nvalid, invalid_cost, origin, restart_period, device)
         ny, nx, _ = S.shape
         out = [cuda.device_array((ny, nx), np.float32) for _ in range(4)]
-        winner_k[_launch(ny * nx)](S, d_cost, d_n, *out)
+        _run(winner_k, _launch(ny * nx), S, d_cost, d_n, *out)
         return tuple(o.copy_to_host() for o in out)
