@@ -258,3 +258,239 @@ def test_bad_input_is_one_clear_line(k, case, tmp_path):
     if out.exists():
         left = [p for p in PRODUCTS if (out / p).exists()]
         assert not left, f"finished-looking products left in --out: {left}"
+
+
+# ------------------------------------------------------------------ faults of the machine (issue 37)
+def _error_line(r: subprocess.CompletedProcess, command: str) -> str:
+    """The one ``tiledsm COMMAND: error:`` line of a refused command (exit
+    code 2, no traceback)."""
+    prefix = f"tiledsm {command}: error:"
+    assert r.returncode == 2, f"rc {r.returncode}\n--- stdout\n{r.stdout[-2000:]}\n--- stderr\n{r.stderr[-3000:]}"
+    assert "Traceback" not in r.stderr, r.stderr[-3000:]
+    lines = [ln for ln in r.stderr.splitlines() if ln.startswith(prefix)]
+    assert len(lines) == 1, f"expected one '{prefix}' line:\n{r.stderr[-3000:]}"
+    return lines[0]
+
+
+@pytest.fixture
+def not_a_scheduler(request):
+    """``tcp://127.0.0.1:PORT`` of a plain TCP server of this test that
+    accepts and sends ``request.param`` (bytes), or nothing (``None``)
+    while holding the connection open."""
+    import socket
+    import threading
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(8)
+    held = []
+
+    def serve():
+        while True:
+            try:
+                conn, _ = server.accept()
+            except OSError:  # closed at the test's end
+                return
+            if request.param is not None:
+                conn.sendall(request.param)
+            held.append(conn)
+
+    threading.Thread(target=serve, daemon=True).start()
+    yield f"tcp://127.0.0.1:{server.getsockname()[1]}"
+    server.close()
+    for conn in held:
+        conn.close()
+
+
+def _scheduler_refused(k, tmp_path, capsys, address: str, *extra: str) -> tuple[str, float]:
+    """``tiledsm dsm --scheduler ADDRESS --overwrite`` into a folder holding
+    an earlier run's products (``python -m tiledsm``) and into a new folder
+    (:func:`tiledsm.cli.main` in this process, timed: the interpreter's
+    start and imports left out): the error line, the same for both, and
+    the seconds the second took; nothing created or withdrawn."""
+    import time
+
+    from tiledsm.cli import main
+
+    earlier, new = tmp_path / "earlier", tmp_path / "new"
+    earlier.mkdir()
+    kept = {name: f"an earlier run's {name}".encode() for name in ("dsm.tif", "metrics.json")}
+    for name, data in kept.items():
+        (earlier / name).write_bytes(data)
+    argv = lambda out: ["dsm", str(k["v0"]), str(k["v1"]), "--out", str(out), "--scheduler", address,  # noqa: E731
+                        "--overwrite", "--no-progress", *extra]
+    r = subprocess.run([sys.executable, "-m", "tiledsm", *argv(earlier)], capture_output=True, text=True,
+                       timeout=120, cwd=tmp_path)
+    line = _error_line(r, "dsm")
+    assert {p.name: p.read_bytes() for p in earlier.iterdir()} == kept  # nothing withdrawn, nothing added
+    capsys.readouterr()
+    t0 = time.monotonic()
+    code = main(argv(new))
+    seconds = time.monotonic() - t0
+    err = capsys.readouterr().err
+    assert code == 2 and err.strip() == line.replace(str(earlier), str(new)), err
+    assert not new.exists()
+    return line, seconds
+
+
+@pytest.mark.parametrize("address, problem", [
+    ("tcp://127.0.0.1:9", "nothing accepts a connection there"),
+    ("tcp://no-such-host.invalid:8786", "cannot resolve the host"),
+], ids=["nothing-listening", "unresolvable-host"])
+@pytest.mark.parametrize("dry", [(), ("--dry-run",)], ids=["run", "dry-run"])
+def test_unreachable_scheduler_is_refused_by_the_plan(k, tmp_path, capsys, address, problem, dry):
+    line, seconds = _scheduler_refused(k, tmp_path, capsys, address, *dry)
+    assert f"--scheduler {address}" in line and problem in line, line
+    assert seconds < 10, f"answered in {seconds:.1f} s"
+
+
+@pytest.mark.parametrize("not_a_scheduler, problem", [
+    (None, "sent no handshake within"),
+    (b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n", "its first bytes are b'HTTP/1.1'"),
+], ids=["silent", "garbage"], indirect=["not_a_scheduler"])
+def test_a_tcp_server_that_is_no_scheduler_is_refused_by_the_plan(k, tmp_path, capsys, not_a_scheduler, problem):
+    line, seconds = _scheduler_refused(k, tmp_path, capsys, not_a_scheduler)
+    assert f"--scheduler {not_a_scheduler}" in line and "not a dask scheduler" in line and problem in line, line
+    assert seconds < 10, f"answered in {seconds:.1f} s"
+
+
+def test_a_real_scheduler_passes_the_plan_and_its_workers_are_counted(k, tmp_path):
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, protocol="tcp",
+                      dashboard_address=":0") as cluster:
+        r = subprocess.run([sys.executable, "-m", "tiledsm", "dsm", str(k["v0"]), str(k["v1"]), "--out",
+                            str(tmp_path / "out"), "--scheduler", cluster.scheduler_address, "--dry-run"],
+                           capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert f"existing cluster at {cluster.scheduler_address}: 2 workers now" in r.stdout, r.stdout
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.fixture
+def mounted(tmp_path):
+    """``mount(options)``: a fresh tmpfs folder mounted with ``options``
+    (e.g. ``ro`` or ``size=64k``: a read-only or a small disk), unmounted
+    at the test's end; the test is skipped where this user may not mount."""
+    mounts = []
+
+    def mount(options: str) -> Path:
+        where = tmp_path / f"mnt{len(mounts)}"
+        where.mkdir()
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(where)], capture_output=True, text=True)
+        if r.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here ({r.stderr.strip()})")
+        mounts.append(where)
+        return where
+
+    yield mount
+    for where in reversed(mounts):
+        subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+@pytest.fixture
+def read_only_folder(tmp_path, mounted) -> Path:
+    """A folder this user cannot write into: a read-only tmpfs for root
+    (whom permissions do not stop), a folder without write permission for
+    anyone else."""
+    if os.geteuid() == 0:
+        yield mounted("ro,size=64k")
+        return
+    folder = tmp_path / "read_only"
+    folder.mkdir()
+    folder.chmod(0o555)
+    yield folder
+    folder.chmod(0o755)
+
+
+@pytest.mark.parametrize("where", ["the-folder", "below-it"])
+@pytest.mark.parametrize("command", ["dsm", "sr"])
+def test_unwritable_output_is_refused_by_the_plan(k, tmp_path, read_only_folder, command, where):
+    out = read_only_folder if where == "the-folder" else read_only_folder / "new" / "out"
+    argv = (["dsm", str(k["v0"]), str(k["v1"]), "--out", str(out)] if command == "dsm"
+            else ["sr", str(k["v0"]), str(out / "sr.tif"), "--model", "bicubic"])
+    r = subprocess.run([sys.executable, "-m", "tiledsm", *argv], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    line = _error_line(r, command)
+    reason = "read-only file system" if os.geteuid() == 0 else "permission denied"
+    assert f"{read_only_folder}: " in line and reason in line, line
+    assert ("--out" if command == "dsm" else "OUTPUT") in line, line
+    assert list(read_only_folder.iterdir()) == []
+
+
+def test_full_disk_is_one_line_naming_the_output(k, tmp_path, mounted):
+    """``tiledsm sr`` onto a disk too small for its GeoTIFF (a 64 KiB
+    tmpfs; the 320² float32 output needs 400 KiB): GDAL's failed write
+    becomes one line naming the output and the room on its disk, and no
+    temporary is left."""
+    disk = mounted("size=64k")
+    r = subprocess.run([sys.executable, "-m", "tiledsm", "sr", str(k["v0"]), str(disk / "sr.tif"), "--model", "bicubic"],
+                       capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    line = _error_line(r, "sr")
+    assert f"{disk / 'sr.tif'}: cannot write it (" in line and "0.0625 MiB free on its disk" in line, line
+    assert list(disk.iterdir()) == []
+
+
+@pytest.mark.parametrize("command", ["dsm", "sr"])
+def test_a_write_that_fails_mid_run_is_one_line(k, tmp_path, monkeypatch, capsys, command):
+    """Wherever the machine stops a write (full disk, quota, a folder made
+    read-only during the run: an ``OSError`` with its errno), the command
+    ends with one line naming the file and the system's reason, exit code
+    2, no traceback; simulated in this process on the GeoTIFF writer that
+    both commands end with."""
+    import errno
+
+    import tiledsm.io.export as export
+    from tiledsm.cli import main
+
+    def full(data, path, **kw):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+    monkeypatch.setattr(export, "_write_gtiff", full)
+    out = tmp_path / "out"
+    argv = (["dsm", str(k["v0"]), str(k["v1"]), "--out", str(out), "--scheduler", "synchronous", "--no-progress"]
+            if command == "dsm" else ["sr", str(k["v0"]), str(tmp_path / "sr.tif"), "--model", "bicubic"])
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.startswith(f"tiledsm {command}: error:")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    name = "dsm.tif" if command == "dsm" else "sr.tif"
+    assert f"/.{name}.tmp-" in lines[0] and lines[0].endswith(": No space left on device"), lines[0]
+    left = [p.name for p in (out if command == "dsm" else tmp_path).iterdir() if ".tmp-" in p.name]
+    assert not left, left
+
+
+def test_read_only_installation_runs_for_a_user_without_a_writable_home(k, tmp_path, mounted):
+    """A copy of the package that nobody may write into (a read-only tmpfs
+    for root, files without write permission for anyone else), run with a
+    home that cannot be written either: numba can cache its kernels
+    (``cache=True``) neither beside their sources nor in ``~/.cache``, and
+    compiled none before tiledsm pointed it at the temporary folder
+    (``RuntimeError: cannot cache function '_rational': no locator
+    available``). ``--help`` and ``info`` (which compiles the RPC kernel)
+    work, and the kernel is cached in the temporary folder."""
+    import tiledsm
+
+    source = Path(tiledsm.__file__).parent
+    if os.geteuid() == 0:
+        installed, home = mounted("size=64m"), mounted("ro,size=64k")
+    else:
+        installed, home = tmp_path / "site", tmp_path / "home"
+        installed.mkdir()
+        home.mkdir()
+    shutil.copytree(source, installed / "tiledsm", ignore=shutil.ignore_patterns("__pycache__"))
+    if os.geteuid() == 0:
+        subprocess.run(["mount", "-o", "remount,ro", str(installed)], check=True)
+    else:
+        for p in [*installed.rglob("*"), installed, home]:
+            p.chmod(p.stat().st_mode & ~0o222)
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    env = {key: v for key, v in os.environ.items() if key not in ("XDG_CACHE_HOME", "NUMBA_CACHE_DIR")}
+    env.update(HOME=str(home), TMPDIR=str(temp), PYTHONPATH=str(installed))
+    for argv in (["--help"], ["info", str(k["v0"])]):
+        r = subprocess.run([sys.executable, "-m", "tiledsm", *argv], capture_output=True, text=True, timeout=300,
+                           cwd=tmp_path, env=env)
+        assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr[-3000:]
+    assert "gsd_m" in r.stdout, r.stdout
+    assert [p.name for p in temp.glob("tiledsm-numba-cache-*/*/rpc._rational-*.nbi")], list(temp.rglob("*"))
+    assert not list(installed.rglob("__pycache__"))
