@@ -494,3 +494,52 @@ def test_read_only_installation_runs_for_a_user_without_a_writable_home(k, tmp_p
     assert "gsd_m" in r.stdout, r.stdout
     assert [p.name for p in temp.glob("tiledsm-numba-cache-*/*/rpc._rational-*.nbi")], list(temp.rglob("*"))
     assert not list(installed.rglob("__pycache__"))
+
+
+def test_a_run_killed_during_the_export_leaves_no_temporary_after_its_rerun(k, tmp_path):
+    """``tiledsm dsm`` killed (SIGKILL) while it exports ``dsm.tif``: its
+    uncompressed full-grid source ``.dsm.tif.tmp-*.tif.src.tif`` is left
+    (a killed process cleans nothing). The rerun, on taking the folder's
+    lock, removes it and GDAL's ``.ovr.tmp`` beside it, and ends with a
+    DSM equal to a clean run's. The export waits between its source and the
+    COG while ``TILEDSM_TEST_EXPORT_PAUSE_S`` is set: the kill lands there."""
+    import signal
+    import time
+
+    from tiledsm.io.atomic import TEMPORARY
+    from tiledsm.io.export import EXPORT_PAUSE_ENV
+
+    def cmd(out):
+        return [sys.executable, "-m", "tiledsm", "dsm", str(k["v0"]), str(k["v1"]), "--out", str(out),
+                "--scheduler", "synchronous", "--no-progress"]
+
+    def temporaries(out):
+        return sorted(p.name for p in out.rglob("*") if TEMPORARY.match(p.name))
+
+    clean, out = tmp_path / "clean", tmp_path / "out"
+    r = subprocess.run(cmd(clean), capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    killed = subprocess.Popen(cmd(out), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                              env={**os.environ, EXPORT_PAUSE_ENV: "120"})
+    try:
+        deadline = time.monotonic() + 240
+        while not list(out.glob(".dsm.tif.tmp-*.src.tif")):
+            assert killed.poll() is None and time.monotonic() < deadline, "the export never started"
+            time.sleep(0.2)
+    finally:
+        killed.send_signal(signal.SIGKILL)
+        killed.wait(timeout=60)
+    left = temporaries(out)
+    assert len(left) == 1 and left[0].endswith(".tif.src.tif"), left
+    source = out / left[0]
+    ovr = source.with_name(source.name.removesuffix(".src.tif") + ".ovr.tmp")  # GDAL's, when killed in the COG
+    ovr.write_bytes(b"overviews")
+    assert not (out / "dsm.tif").exists()
+
+    r = subprocess.run(cmd(out), capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert temporaries(out) == []
+    assert "removed 2 temporaries an interrupted run left" in (out / "run.log").read_text() + r.stderr
+    with rasterio.open(clean / "dsm.tif") as a, rasterio.open(out / "dsm.tif") as b:
+        np.testing.assert_array_equal(a.read(), b.read())
+        assert a.transform == b.transform and a.crs == b.crs
