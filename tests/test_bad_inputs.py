@@ -543,3 +543,52 @@ def test_a_run_killed_during_the_export_leaves_no_temporary_after_its_rerun(k, t
     with rasterio.open(clean / "dsm.tif") as a, rasterio.open(out / "dsm.tif") as b:
         np.testing.assert_array_equal(a.read(), b.read())
         assert a.transform == b.transform and a.crs == b.crs
+
+
+def test_cells_finer_than_a_fifth_of_the_gsd_warn_in_the_plan_and_the_run_log(k, tmp_path):
+    """A 0.05 m DSM from 0.5 m images (on a 6 m square: 120² cells) runs,
+    but warns, naming --resolution and both sizes, on stderr, in
+    ``run.log`` and in ``metrics.json``; 0.1 m (a fifth) does not."""
+    with rasterio.open(k["truth"]) as src:
+        x, y = (src.bounds.left + src.bounds.right) / 2, (src.bounds.bottom + src.bounds.top) / 2
+        crs = src.crs.to_string()
+    bounds = [str(v) for v in (x - 3, y - 3, x + 3, y + 3)]
+    warned = "cells of 0.05 m are finer than a fifth of the images' GSD (0.5 m)"
+    for resolution, warns in (("0.05", True), ("0.1", False)):
+        out = tmp_path / resolution
+        r = subprocess.run([sys.executable, "-m", "tiledsm", "dsm", str(k["v0"]), str(k["v1"]), "--out", str(out),
+                            "--bounds", *bounds, "--crs", crs, "--resolution", resolution, "--scheduler", "synchronous",
+                            "--no-progress"], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+        assert r.returncode == 0, r.stderr[-3000:]
+        lines = [ln for ln in r.stderr.splitlines() if "finer than a fifth" in ln]
+        if not warns:
+            assert not lines and "finer than a fifth" not in (out / "run.log").read_text(), r.stderr
+            continue
+        assert len(lines) == 1 and lines[0].startswith(f"tiledsm dsm: warning: --resolution 0.05: {warned}"), r.stderr
+        assert "2,500 times" not in lines[0] and "100 times the cells" in lines[0], lines[0]
+        assert warned in (out / "run.log").read_text()
+        assert any(warned in w for w in json.loads((out / "metrics.json").read_text())["warnings"])
+
+
+def test_allow_large_dry_run_of_a_huge_grid_prints_its_plan_in_seconds(k, tmp_path, capsys):
+    """``--resolution 0.0005 --allow-large --dry-run`` from 0.5 m images:
+    a 40.6 Gcell grid in 402 x 386 = 155 172 chunks. Its plan built the
+    graph's dependencies by scanning every chunk of a row for each chunk
+    (102 s on the 2-core development machine); now a binary search (10 s
+    there). The plan is printed, with the GSD warning, and nothing is
+    written. Timed in this process (:func:`tiledsm.cli.main`)."""
+    import time
+
+    from tiledsm.cli import main
+
+    out = tmp_path / "out"
+    t0 = time.monotonic()
+    code = main(["dsm", str(k["v0"]), str(k["v1"]), "--out", str(out), "--resolution", "0.0005", "--allow-large",
+                 "--dry-run"])
+    seconds = time.monotonic() - t0
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert "402 x 386 = 155172" in captured.out and "620,689 in the dask graph" in captured.out, captured.out
+    assert "cells of 0.0005 m are finer than a fifth of the images' GSD (0.5 m)" in captured.err, captured.err
+    assert not out.exists()
+    assert seconds < 45, f"the plan took {seconds:.0f} s"
