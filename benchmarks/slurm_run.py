@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from same_dsm import heights  # benchmarks/ is the script's folder: on sys.path
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -55,13 +56,6 @@ def run(cmd: list[str], env: dict, cwd: Path) -> float:
     if r.returncode:
         raise SystemExit(f"{' '.join(cmd)}: rc {r.returncode}\n{r.stdout[-2000:]}\n{r.stderr[-3000:]}")
     return time.perf_counter() - t0
-
-
-def heights(store: Path) -> np.ndarray:
-    import xarray as xr
-
-    with xr.open_zarr(store, consolidated=False) as ds:
-        return ds["height"].values
 
 
 def main() -> int:
