@@ -417,17 +417,25 @@ def test_unwritable_output_is_refused_by_the_plan(k, tmp_path, read_only_folder,
     assert list(read_only_folder.iterdir()) == []
 
 
-def test_full_disk_is_one_line_naming_the_output(k, tmp_path, mounted):
-    """``tiledsm sr`` onto a disk too small for its GeoTIFF (a 64 KiB
-    tmpfs; the 320² float32 output needs 400 KiB): GDAL's failed write
-    becomes one line naming the output and the room on its disk, and no
-    temporary is left."""
-    disk = mounted("size=64k")
-    r = subprocess.run([sys.executable, "-m", "tiledsm", "sr", str(k["v0"]), str(disk / "sr.tif"), "--model", "bicubic"],
-                       capture_output=True, text=True, timeout=120, cwd=tmp_path)
-    line = _error_line(r, "sr")
-    assert f"{disk / 'sr.tif'}: cannot write it (" in line and "0.0625 MiB free on its disk" in line, line
-    assert list(disk.iterdir()) == []
+@pytest.mark.parametrize("command", ["dsm", "sr"])
+def test_full_disk_is_one_line_naming_the_output(k, tmp_path, mounted, command):
+    """Onto a disk too small for the products (a 120 KiB tmpfs): ``sr``'s
+    320² float32 GeoTIFF needs 400 KiB, and GDAL's failed write becomes one
+    line naming the output and the room on its disk, no temporary left;
+    ``dsm``'s store fills the disk (zarr's ``OSError`` without a file name):
+    one line naming --out."""
+    disk = mounted("size=120k")
+    out = disk / ("out" if command == "dsm" else "sr.tif")
+    argv = (["dsm", str(k["v0"]), str(k["v1"]), "--out", str(out), "--scheduler", "synchronous", "--no-progress"]
+            if command == "dsm" else ["sr", str(k["v0"]), str(out), "--model", "bicubic"])
+    r = subprocess.run([sys.executable, "-m", "tiledsm", *argv], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    line = _error_line(r, command)
+    if command == "sr":
+        assert f"{out}: cannot write it (" in line and "0.117 MiB free on its disk" in line, line
+        assert list(disk.iterdir()) == []
+    else:
+        assert line.endswith(f"error: {out}: No space left on device (writing into it)"), line
+        assert not (out / "metrics.json").exists() and not (out / "dsm.tif").exists()
 
 
 @pytest.mark.parametrize("command", ["dsm", "sr"])
