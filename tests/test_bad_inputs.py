@@ -258,3 +258,345 @@ def test_bad_input_is_one_clear_line(k, case, tmp_path):
     if out.exists():
         left = [p for p in PRODUCTS if (out / p).exists()]
         assert not left, f"finished-looking products left in --out: {left}"
+
+
+# ------------------------------------------------------------------ faults of the machine (issue 37)
+def _error_line(r: subprocess.CompletedProcess, command: str) -> str:
+    """The one ``tiledsm COMMAND: error:`` line of a refused command (exit
+    code 2, no traceback)."""
+    prefix = f"tiledsm {command}: error:"
+    assert r.returncode == 2, f"rc {r.returncode}\n--- stdout\n{r.stdout[-2000:]}\n--- stderr\n{r.stderr[-3000:]}"
+    assert "Traceback" not in r.stderr, r.stderr[-3000:]
+    lines = [ln for ln in r.stderr.splitlines() if ln.startswith(prefix)]
+    assert len(lines) == 1, f"expected one '{prefix}' line:\n{r.stderr[-3000:]}"
+    return lines[0]
+
+
+@pytest.fixture
+def not_a_scheduler(request):
+    """``tcp://127.0.0.1:PORT`` of a plain TCP server of this test that
+    accepts and sends ``request.param`` (bytes), or nothing (``None``)
+    while holding the connection open."""
+    import socket
+    import threading
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(8)
+    held = []
+
+    def serve():
+        while True:
+            try:
+                conn, _ = server.accept()
+            except OSError:  # closed at the test's end
+                return
+            if request.param is not None:
+                conn.sendall(request.param)
+            held.append(conn)
+
+    threading.Thread(target=serve, daemon=True).start()
+    yield f"tcp://127.0.0.1:{server.getsockname()[1]}"
+    server.close()
+    for conn in held:
+        conn.close()
+
+
+def _scheduler_refused(k, tmp_path, capsys, address: str, *extra: str) -> tuple[str, float]:
+    """``tiledsm dsm --scheduler ADDRESS --overwrite`` into a folder holding
+    an earlier run's products (``python -m tiledsm``) and into a new folder
+    (:func:`tiledsm.cli.main` in this process, timed: the interpreter's
+    start and imports left out): the error line, the same for both, and
+    the seconds the second took; nothing created or withdrawn."""
+    import time
+
+    from tiledsm.cli import main
+
+    earlier, new = tmp_path / "earlier", tmp_path / "new"
+    earlier.mkdir()
+    kept = {name: f"an earlier run's {name}".encode() for name in ("dsm.tif", "metrics.json")}
+    for name, data in kept.items():
+        (earlier / name).write_bytes(data)
+    argv = lambda out: ["dsm", str(k["v0"]), str(k["v1"]), "--out", str(out), "--scheduler", address,  # noqa: E731
+                        "--overwrite", "--no-progress", *extra]
+    r = subprocess.run([sys.executable, "-m", "tiledsm", *argv(earlier)], capture_output=True, text=True,
+                       timeout=120, cwd=tmp_path)
+    line = _error_line(r, "dsm")
+    assert {p.name: p.read_bytes() for p in earlier.iterdir()} == kept  # nothing withdrawn, nothing added
+    capsys.readouterr()
+    t0 = time.monotonic()
+    code = main(argv(new))
+    seconds = time.monotonic() - t0
+    err = capsys.readouterr().err
+    assert code == 2 and err.strip() == line.replace(str(earlier), str(new)), err
+    assert not new.exists()
+    return line, seconds
+
+
+@pytest.mark.parametrize("address, problem", [
+    ("tcp://127.0.0.1:9", "nothing accepts a connection there"),
+    ("tcp://no-such-host.invalid:8786", "cannot resolve the host"),
+], ids=["nothing-listening", "unresolvable-host"])
+@pytest.mark.parametrize("dry", [(), ("--dry-run",)], ids=["run", "dry-run"])
+def test_unreachable_scheduler_is_refused_by_the_plan(k, tmp_path, capsys, address, problem, dry):
+    line, seconds = _scheduler_refused(k, tmp_path, capsys, address, *dry)
+    assert f"--scheduler {address}" in line and problem in line, line
+    assert seconds < 10, f"answered in {seconds:.1f} s"
+
+
+@pytest.mark.parametrize("not_a_scheduler, problem", [
+    (None, "sent no handshake within"),
+    (b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n", "its first bytes are b'HTTP/1.1'"),
+], ids=["silent", "garbage"], indirect=["not_a_scheduler"])
+def test_a_tcp_server_that_is_no_scheduler_is_refused_by_the_plan(k, tmp_path, capsys, not_a_scheduler, problem):
+    line, seconds = _scheduler_refused(k, tmp_path, capsys, not_a_scheduler)
+    assert f"--scheduler {not_a_scheduler}" in line and "not a dask scheduler" in line and problem in line, line
+    assert seconds < 10, f"answered in {seconds:.1f} s"
+
+
+def test_a_real_scheduler_passes_the_plan_and_its_workers_are_counted(k, tmp_path):
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, protocol="tcp",
+                      dashboard_address=":0") as cluster:
+        r = subprocess.run([sys.executable, "-m", "tiledsm", "dsm", str(k["v0"]), str(k["v1"]), "--out",
+                            str(tmp_path / "out"), "--scheduler", cluster.scheduler_address, "--dry-run"],
+                           capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert f"existing cluster at {cluster.scheduler_address}: 2 workers now" in r.stdout, r.stdout
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.fixture
+def mounted(tmp_path):
+    """``mount(options)``: a fresh tmpfs folder mounted with ``options``
+    (e.g. ``ro`` or ``size=64k``: a read-only or a small disk), unmounted
+    at the test's end; the test is skipped where this user may not mount."""
+    mounts = []
+
+    def mount(options: str) -> Path:
+        where = tmp_path / f"mnt{len(mounts)}"
+        where.mkdir()
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(where)], capture_output=True, text=True)
+        if r.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here ({r.stderr.strip()})")
+        mounts.append(where)
+        return where
+
+    yield mount
+    for where in reversed(mounts):
+        subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+@pytest.fixture
+def read_only_folder(tmp_path, mounted) -> Path:
+    """A folder this user cannot write into: a read-only tmpfs for root
+    (whom permissions do not stop), a folder without write permission for
+    anyone else."""
+    if os.geteuid() == 0:
+        yield mounted("ro,size=64k")
+        return
+    folder = tmp_path / "read_only"
+    folder.mkdir()
+    folder.chmod(0o555)
+    yield folder
+    folder.chmod(0o755)
+
+
+@pytest.mark.parametrize("where", ["the-folder", "below-it"])
+@pytest.mark.parametrize("command", ["dsm", "sr"])
+def test_unwritable_output_is_refused_by_the_plan(k, tmp_path, read_only_folder, command, where):
+    out = read_only_folder if where == "the-folder" else read_only_folder / "new" / "out"
+    argv = (["dsm", str(k["v0"]), str(k["v1"]), "--out", str(out)] if command == "dsm"
+            else ["sr", str(k["v0"]), str(out / "sr.tif"), "--model", "bicubic"])
+    r = subprocess.run([sys.executable, "-m", "tiledsm", *argv], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    line = _error_line(r, command)
+    reason = "read-only file system" if os.geteuid() == 0 else "permission denied"
+    assert f"{read_only_folder}: " in line and reason in line, line
+    assert ("--out" if command == "dsm" else "OUTPUT") in line, line
+    assert list(read_only_folder.iterdir()) == []
+
+
+@pytest.mark.parametrize("command", ["dsm", "sr"])
+def test_full_disk_is_one_line_naming_the_output(k, tmp_path, mounted, command):
+    """Onto a disk too small for the products (a 120 KiB tmpfs): ``sr``'s
+    320² float32 GeoTIFF needs 400 KiB, and GDAL's failed write becomes one
+    line naming the output and the room on its disk, no temporary left;
+    ``dsm``'s store fills the disk (zarr's ``OSError`` without a file name):
+    one line naming --out."""
+    disk = mounted("size=120k")
+    out = disk / ("out" if command == "dsm" else "sr.tif")
+    argv = (["dsm", str(k["v0"]), str(k["v1"]), "--out", str(out), "--scheduler", "synchronous", "--no-progress"]
+            if command == "dsm" else ["sr", str(k["v0"]), str(out), "--model", "bicubic"])
+    r = subprocess.run([sys.executable, "-m", "tiledsm", *argv], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    line = _error_line(r, command)
+    if command == "sr":
+        assert f"{out}: cannot write it (" in line and "0.117 MiB free on its disk" in line, line
+        assert list(disk.iterdir()) == []
+    else:
+        assert line.endswith(f"error: {out}: No space left on device (writing into it)"), line
+        assert not (out / "metrics.json").exists() and not (out / "dsm.tif").exists()
+
+
+@pytest.mark.parametrize("command", ["dsm", "sr"])
+def test_a_write_that_fails_mid_run_is_one_line(k, tmp_path, monkeypatch, capsys, command):
+    """Wherever the machine stops a write (full disk, quota, a folder made
+    read-only during the run: an ``OSError`` with its errno), the command
+    ends with one line naming the file and the system's reason, exit code
+    2, no traceback; simulated in this process on the GeoTIFF writer that
+    both commands end with."""
+    import errno
+
+    import tiledsm.io.export as export
+    from tiledsm.cli import main
+
+    def full(data, path, **kw):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+    monkeypatch.setattr(export, "_write_gtiff", full)
+    out = tmp_path / "out"
+    argv = (["dsm", str(k["v0"]), str(k["v1"]), "--out", str(out), "--scheduler", "synchronous", "--no-progress"]
+            if command == "dsm" else ["sr", str(k["v0"]), str(tmp_path / "sr.tif"), "--model", "bicubic"])
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.startswith(f"tiledsm {command}: error:")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    name = "dsm.tif" if command == "dsm" else "sr.tif"
+    assert f"/.{name}.tmp-" in lines[0] and lines[0].endswith(": No space left on device"), lines[0]
+    left = [p.name for p in (out if command == "dsm" else tmp_path).iterdir() if ".tmp-" in p.name]
+    assert not left, left
+
+
+def test_read_only_installation_runs_for_a_user_without_a_writable_home(k, tmp_path, mounted):
+    """A copy of the package that nobody may write into (a read-only tmpfs
+    for root, files without write permission for anyone else), run with a
+    home that cannot be written either: numba can cache its kernels
+    (``cache=True``) neither beside their sources nor in ``~/.cache``, and
+    compiled none before tiledsm pointed it at the temporary folder
+    (``RuntimeError: cannot cache function '_rational': no locator
+    available``). ``--help`` and ``info`` (which compiles the RPC kernel)
+    work, and the kernel is cached in the temporary folder."""
+    import tiledsm
+
+    source = Path(tiledsm.__file__).parent
+    if os.geteuid() == 0:
+        installed, home = mounted("size=64m"), mounted("ro,size=64k")
+    else:
+        installed, home = tmp_path / "site", tmp_path / "home"
+        installed.mkdir()
+        home.mkdir()
+    shutil.copytree(source, installed / "tiledsm", ignore=shutil.ignore_patterns("__pycache__"))
+    if os.geteuid() == 0:
+        subprocess.run(["mount", "-o", "remount,ro", str(installed)], check=True)
+    else:
+        for p in [*installed.rglob("*"), installed, home]:
+            p.chmod(p.stat().st_mode & ~0o222)
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    env = {key: v for key, v in os.environ.items() if key not in ("XDG_CACHE_HOME", "NUMBA_CACHE_DIR")}
+    env.update(HOME=str(home), TMPDIR=str(temp), PYTHONPATH=str(installed))
+    for argv in (["--help"], ["info", str(k["v0"])]):
+        r = subprocess.run([sys.executable, "-m", "tiledsm", *argv], capture_output=True, text=True, timeout=300,
+                           cwd=tmp_path, env=env)
+        assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr[-3000:]
+    assert "gsd_m" in r.stdout, r.stdout
+    assert [p.name for p in temp.glob("tiledsm-numba-cache-*/*/rpc._rational-*.nbi")], list(temp.rglob("*"))
+    assert not list(installed.rglob("__pycache__"))
+
+
+def test_a_run_killed_during_the_export_leaves_no_temporary_after_its_rerun(k, tmp_path):
+    """``tiledsm dsm`` killed (SIGKILL) while it exports ``dsm.tif``: its
+    uncompressed full-grid source ``.dsm.tif.tmp-*.tif.src.tif`` is left
+    (a killed process cleans nothing). The rerun, on taking the folder's
+    lock, removes it and GDAL's ``.ovr.tmp`` beside it, and ends with a
+    DSM equal to a clean run's. The export waits between its source and the
+    COG while ``TILEDSM_TEST_EXPORT_PAUSE_S`` is set: the kill lands there."""
+    import signal
+    import time
+
+    from tiledsm.io.atomic import TEMPORARY
+    from tiledsm.io.export import EXPORT_PAUSE_ENV
+
+    def cmd(out):
+        return [sys.executable, "-m", "tiledsm", "dsm", str(k["v0"]), str(k["v1"]), "--out", str(out),
+                "--scheduler", "synchronous", "--no-progress"]
+
+    def temporaries(out):
+        return sorted(p.name for p in out.rglob("*") if TEMPORARY.match(p.name))
+
+    clean, out = tmp_path / "clean", tmp_path / "out"
+    r = subprocess.run(cmd(clean), capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    killed = subprocess.Popen(cmd(out), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                              env={**os.environ, EXPORT_PAUSE_ENV: "120"})
+    try:
+        deadline = time.monotonic() + 240
+        while not list(out.glob(".dsm.tif.tmp-*.src.tif")):
+            assert killed.poll() is None and time.monotonic() < deadline, "the export never started"
+            time.sleep(0.2)
+    finally:
+        killed.send_signal(signal.SIGKILL)
+        killed.wait(timeout=60)
+    left = temporaries(out)
+    assert len(left) == 1 and left[0].endswith(".tif.src.tif"), left
+    source = out / left[0]
+    ovr = source.with_name(source.name.removesuffix(".src.tif") + ".ovr.tmp")  # GDAL's, when killed in the COG
+    ovr.write_bytes(b"overviews")
+    assert not (out / "dsm.tif").exists()
+
+    r = subprocess.run(cmd(out), capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert temporaries(out) == []
+    assert "removed 2 temporaries an interrupted run left" in (out / "run.log").read_text() + r.stderr
+    with rasterio.open(clean / "dsm.tif") as a, rasterio.open(out / "dsm.tif") as b:
+        np.testing.assert_array_equal(a.read(), b.read())
+        assert a.transform == b.transform and a.crs == b.crs
+
+
+def test_cells_finer_than_a_fifth_of_the_gsd_warn_in_the_plan_and_the_run_log(k, tmp_path):
+    """A 0.05 m DSM from 0.5 m images (on a 6 m square: 120² cells) runs,
+    but warns, naming --resolution and both sizes, on stderr, in
+    ``run.log`` and in ``metrics.json``; 0.1 m (a fifth) does not."""
+    with rasterio.open(k["truth"]) as src:
+        x, y = (src.bounds.left + src.bounds.right) / 2, (src.bounds.bottom + src.bounds.top) / 2
+        crs = src.crs.to_string()
+    bounds = [str(v) for v in (x - 3, y - 3, x + 3, y + 3)]
+    warned = "cells of 0.05 m are finer than a fifth of the images' GSD (0.5 m)"
+    for resolution, warns in (("0.05", True), ("0.1", False)):
+        out = tmp_path / resolution
+        r = subprocess.run([sys.executable, "-m", "tiledsm", "dsm", str(k["v0"]), str(k["v1"]), "--out", str(out),
+                            "--bounds", *bounds, "--crs", crs, "--resolution", resolution, "--scheduler", "synchronous",
+                            "--no-progress"], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+        assert r.returncode == 0, r.stderr[-3000:]
+        lines = [ln for ln in r.stderr.splitlines() if "finer than a fifth" in ln]
+        if not warns:
+            assert not lines and "finer than a fifth" not in (out / "run.log").read_text(), r.stderr
+            continue
+        assert len(lines) == 1 and lines[0].startswith(f"tiledsm dsm: warning: --resolution 0.05: {warned}"), r.stderr
+        assert "2,500 times" not in lines[0] and "100 times the cells" in lines[0], lines[0]
+        assert warned in (out / "run.log").read_text()
+        assert any(warned in w for w in json.loads((out / "metrics.json").read_text())["warnings"])
+
+
+def test_allow_large_dry_run_of_a_huge_grid_prints_its_plan_in_seconds(k, tmp_path, capsys):
+    """``--resolution 0.0005 --allow-large --dry-run`` from 0.5 m images:
+    a 40.6 Gcell grid in 402 x 386 = 155 172 chunks. Its plan built the
+    graph's dependencies by scanning every chunk of a row for each chunk
+    (102 s on the 2-core development machine); now a binary search (10 s
+    there). The plan is printed, with the GSD warning, and nothing is
+    written. Timed in this process (:func:`tiledsm.cli.main`)."""
+    import time
+
+    from tiledsm.cli import main
+
+    out = tmp_path / "out"
+    t0 = time.monotonic()
+    code = main(["dsm", str(k["v0"]), str(k["v1"]), "--out", str(out), "--resolution", "0.0005", "--allow-large",
+                 "--dry-run"])
+    seconds = time.monotonic() - t0
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert "402 x 386 = 155172" in captured.out and "620,689 in the dask graph" in captured.out, captured.out
+    assert "cells of 0.0005 m are finer than a fifth of the images' GSD (0.5 m)" in captured.err, captured.err
+    assert not out.exists()
+    assert seconds < 45, f"the plan took {seconds:.0f} s"

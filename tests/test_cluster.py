@@ -168,3 +168,27 @@ def test_dsm_on_slurm_jobs_equals_the_local_dsm(scene, tmp_path):
     assert np.isfinite(runs["slurm"]).mean() > 0.8
     metrics = json.loads((tmp_path / "slurm" / "metrics.json").read_text())
     assert metrics["timings"]["chunks"]["chunks_computed"] == 4
+
+
+def _slurm_node_idle() -> bool:
+    import shutil
+
+    if not shutil.which("sinfo"):
+        return False
+    r = subprocess.run(["sinfo", "-h", "-o", "%t"], capture_output=True, text=True)
+    return r.returncode == 0 and "idle" in r.stdout.split()
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not _slurm_node_idle(), reason="no SLURM with an idle node here (benchmarks/slurm_local.sh starts one)")
+def test_dsm_on_a_real_slurm_equals_the_local_dsm(tmp_path):
+    """Where a real SLURM runs (``sudo benchmarks/slurm_local.sh start``):
+    ``benchmarks/slurm_run.py`` submits the workers as SLURM jobs through
+    ``--cluster slurm.yaml``, and the DSM equals the local one cell by cell."""
+    out = tmp_path / "slurm_run.json"
+    r = subprocess.run([sys.executable, str(Path(__file__).parents[1] / "benchmarks" / "slurm_run.py"), "--size", "256",
+                        "--json", str(out), "--workdir", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    result = json.loads(out.read_text())
+    assert result["jobs_submitted"] >= 1 and result["heights_identical"] and result["cells_differing"] == 0, result
+    assert result["chunks"]["chunks_computed"] == 4 and result["finite_fraction"] > 0.8, result

@@ -372,16 +372,16 @@ def _consistent(out: Path) -> None:
 
 @pytest.mark.slow
 def test_interrupted_before_the_store_exists(scene, finished, tmp_path):
-    """P2 --overwrite dies before its store exists (no scheduler): the
-    folder keeps P1's DSM but nothing claims P1 or P2 for it beyond the
-    store's own fingerprint; P2 without --overwrite is then refused."""
+    """P2 --overwrite with no scheduler at its --scheduler address: the plan
+    refuses it (issue 37) before anything is withdrawn, so the folder keeps
+    P1's DSM and the products that describe it; P2 without --overwrite is
+    then refused."""
     out = copy_of(finished, tmp_path)
-    r = run(dsm_cmd(scene.views, scene.truth_dsm, out, *P2, "--overwrite", scheduler="tcp://127.0.0.1:9"),
-            DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT="3s")
-    assert r.returncode != 0
+    before = products(out)
+    r = run(dsm_cmd(scene.views, scene.truth_dsm, out, *P2, "--overwrite", scheduler="tcp://127.0.0.1:9"))
+    assert r.returncode == 2 and "--scheduler tcp://127.0.0.1:9" in r.stderr, r.stderr
     assert store_fingerprint(out / "dsm.zarr")["height_range"] == [300.0, 350.0]
-    assert not (out / "metrics.json").exists() and not (out / "recipe.resolved.yaml").exists()
-    assert not (out / "dsm.tif").exists()
+    assert products(out) == before
     _consistent(out)
     r = run(dsm_cmd(scene.views, scene.truth_dsm, out, *P2))
     assert r.returncode == 2 and "height_range" in r.stderr and "--overwrite" in r.stderr, r.stderr
@@ -515,6 +515,7 @@ EMITTERS = {
     "tiledsm/plan/core.py:check_workers": ("dsm", "run", "compare", "sr"),
     "tiledsm/plan/core.py:FieldNames": ("dsm",),
     "tiledsm/cluster.py:compute_context": ("dsm", "run", "sr", "compare", "ortho", "orient"),
+    "tiledsm/cluster.py:check_scheduler": ("dsm", "run", "sr", "compare", "ortho", "orient"),
 }
 OPTION = re.compile(r"(?<![\w-])--[a-z][a-z-]*")
 

@@ -9,6 +9,14 @@ import os
 GDAL_CACHE_MB = 64
 os.environ.setdefault("GDAL_CACHEMAX", str(GDAL_CACHE_MB))
 
+# numba caches the compiled kernels (cache=True) beside their sources or in the
+# user's cache; where neither can be written (a read-only installation, a user
+# without a writable home) it would refuse to compile: point it at a folder of
+# this user in the temporary folder instead, before numba is imported.
+from tiledsm.writable import direct_numba_cache  # noqa: E402
+
+direct_numba_cache(os.path.dirname(__file__))
+
 from tiledsm.errors import TiledsmError  # noqa: E402
 
 __version__ = "0.1.0"

@@ -29,6 +29,8 @@ import dask
 __all__ = [
     "ClusterConfig",
     "JobQueueConfig",
+    "SCHEDULER_TIMEOUT_S",
+    "check_scheduler",
     "JOBQUEUE_KINDS",
     "compute_context",
     "jobqueue_cluster",
@@ -183,6 +185,95 @@ class ClusterConfig:
                 f"cluster: a {self.jobqueue.kind} cluster starts its own scheduler; do not also give "
                 f"a scheduler ({self.scheduler!r})"
             )
+
+
+#: seconds the plan gives a ``--scheduler`` address to answer as a dask scheduler
+SCHEDULER_TIMEOUT_S = 3.0
+#: the largest first message a dask scheduler sends (its handshake: a few hundred bytes)
+_HANDSHAKE_MAX_BYTES = 1 << 20
+
+
+def check_scheduler(address: str, name: str = "--scheduler", timeout: float = SCHEDULER_TIMEOUT_S) -> int:
+    """Contact the dask scheduler at ``address`` and return its number of
+    workers, within about ``2 * timeout`` seconds whatever is (or is not)
+    listening there.
+
+    A TCP address is first probed with a plain socket: the host must
+    resolve, the port accept, and what answers must send dask's handshake
+    (a scheduler writes it as soon as it accepts: an 8-byte length, then
+    that many bytes naming its pickle protocol). Only then does a
+    :class:`distributed.Client` connect and ask for the workers -- a
+    client connecting straight to something else waits until that peer
+    hangs up, or reads a text as a frame length and tries to allocate
+    exabytes. Other schemes (``tls://``, ``inproc://``, ``ucx://``) are
+    checked by the client alone.
+
+    Raises
+    ------
+    InvalidOptionError
+        Naming ``name`` and ``address`` and what went wrong, before
+        anything is written.
+    """
+    from distributed import Client
+    from distributed.comm import parse_address, parse_host_port
+
+    from tiledsm.errors import InvalidOptionError
+
+    def refuse(problem: str) -> InvalidOptionError:
+        return InvalidOptionError(f"{name} {address}: {problem}")
+
+    try:
+        scheme, location = parse_address(address)
+        if scheme == "tcp":
+            _probe_tcp(*parse_host_port(location), timeout, refuse)
+    except ValueError as exc:
+        raise refuse(f"not a scheduler address ({exc}); expected tcp://host:port") from None
+    try:
+        with Client(address, timeout=timeout, set_as_default=False) as client:
+            return len(client.scheduler_info()["workers"])
+    except Exception as exc:  # noqa: BLE001 - whatever the peer did, the address is wrong
+        raise refuse(f"no dask scheduler answers there ({type(exc).__name__}: {exc})") from None
+
+
+def _probe_tcp(host: str, port: int, timeout: float, refuse) -> None:
+    """Raise ``refuse(problem)`` unless a dask scheduler's handshake comes
+    back from ``host:port`` within ``timeout`` seconds."""
+    import socket
+    import struct
+
+    try:
+        socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except socket.gaierror as exc:
+        raise refuse(f"cannot resolve the host {host!r} ({exc.strerror})") from None
+    try:
+        conn = socket.create_connection((host, port), timeout=timeout)
+    except OSError as exc:
+        reason = "timed out" if isinstance(exc, TimeoutError) else exc.strerror or str(exc)
+        raise refuse(f"nothing accepts a connection there ({reason})") from None
+    not_dask = "something listens there but it is not a dask scheduler"
+    with conn:
+        try:
+            head = _read_exactly(conn, 8)
+            (size,) = struct.unpack("<Q", head)
+            if not 8 < size <= _HANDSHAKE_MAX_BYTES:
+                raise refuse(f"{not_dask} (its first bytes are {head!r})")
+            if b"pickle-protocol" not in _read_exactly(conn, size):
+                raise refuse(f"{not_dask} (its first message is no dask handshake)")
+        except TimeoutError:
+            raise refuse(f"{not_dask} (it sent no handshake within {timeout:g} s)") from None
+        except (ConnectionError, EOFError) as exc:
+            raise refuse(f"{not_dask} (it closed the connection: {exc})") from None
+
+
+def _read_exactly(conn, n: int) -> bytes:
+    """``n`` bytes from a socket (its timeout applies to each read)."""
+    data = b""
+    while len(data) < n:
+        part = conn.recv(min(n - len(data), 65536))
+        if not part:
+            raise EOFError(f"closed after {len(data)} of {n} bytes")
+        data += part
+    return data
 
 
 def jobqueue_cluster(config: JobQueueConfig):

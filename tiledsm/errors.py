@@ -4,7 +4,12 @@ what was expected."""
 
 from __future__ import annotations
 
+import errno
+import os
+
 __all__ = [
+    "FILE_FAULTS",
+    "file_fault",
     "TiledsmError",
     "InputFileError",
     "UnsupportedFormatError",
@@ -83,3 +88,50 @@ class RunTooLargeError(GridError):
 class WorkerMemoryError(TiledsmError):
     """A worker died again and again running one task: it was stopped at
     its memory limit (the usual cause), or the machine killed it."""
+
+
+#: errno values of the machine's faults a run can meet on files, not its
+#: inputs' or options': a full disk or quota, a read-only or forbidden folder
+FILE_FAULTS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG})
+
+
+def file_fault(exc: BaseException, output: str | os.PathLike | None = None) -> str | None:
+    """One line for an :class:`OSError` that is a fault of the machine
+    (:data:`FILE_FAULTS`), naming the file it names (else ``output``, the
+    run's output) and the system's reason; ``None`` for any other error.
+
+    The error or one it was raised from counts (a task's ``OSError`` comes
+    back through dask as is). A write GDAL failed (a ``RasterioIOError``
+    without errno, raised from GDAL's own message: a full disk, whose
+    reason GDAL prints itself) counts too, and says how much room the disk
+    holding ``output`` has.
+    """
+    chain, e = [], exc
+    while e is not None and len(chain) < 10:
+        chain.append(e)
+        e = e.__cause__ or e.__context__
+    for e in chain:
+        if isinstance(e, OSError) and e.errno in FILE_FAULTS:
+            if e.filename:
+                return f"{e.filename}: {e.strerror}"
+            return f"{output}: {e.strerror} (writing into it)" if output else f"{e.strerror}"
+    root = str(chain[-1])
+    if output is not None and type(exc).__name__ == "RasterioIOError" and "writ" in root.lower():
+        free = _free_bytes(output)
+        room = "" if free is None else f"; {free / 2**20:.3g} MiB free on its disk once its temporaries are removed"
+        return f"{output}: cannot write it ({root}){room}"
+    return None
+
+
+def _free_bytes(path: str | os.PathLike) -> int | None:
+    """Free bytes on the disk holding ``path`` (or its nearest existing folder)."""
+    import shutil
+    from pathlib import Path
+
+    p = Path(path).expanduser().resolve()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    try:
+        return shutil.disk_usage(p).free
+    except OSError:
+        return None

@@ -55,6 +55,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             traceback.print_exc()
         print(f"tiledsm {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # the machine's fault (full disk, read-only folder): one line, not a traceback
+        from tiledsm.errors import file_fault
+
+        message = file_fault(exc, getattr(args, "out", None) or getattr(args, "output", None))
+        if message is None:
+            raise
+        if args.debug:
+            import traceback
+
+            traceback.print_exc()
+        print(f"tiledsm {args.command}: error: {message}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"tiledsm {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -147,8 +147,12 @@ def run(args: argparse.Namespace) -> int:
     from tiledsm.pipelines import load_recipe
 
     check_workers(args.workers, "--workers")
+    import dataclasses
+
     recipe = load_recipe(args.recipe)
-    return plan_and_run(recipe, args, cluster_config(args, getattr(recipe, "cluster", None)), RECIPE_NAMES)
+    # the scheduler's address came from the command line or from the recipe: the plan names whichever it was
+    names = dataclasses.replace(RECIPE_NAMES, scheduler="--scheduler") if args.scheduler else RECIPE_NAMES
+    return plan_and_run(recipe, args, cluster_config(args, getattr(recipe, "cluster", None)), names)
 
 
 def print_summary(metrics: dict) -> None:

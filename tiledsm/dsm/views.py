@@ -146,7 +146,7 @@ def default_grid(views: Sequence[View], h_range: tuple[float, float], params: DS
     if lon0 >= lon1 or lat0 >= lat1:
         raise NoOverlapError("the views have no ground in common: " + ", ".join(v.path for v in views))
     crs = params.crs or utm_crs((lon0 + lon1) / 2, (lat0 + lat1) / 2)
-    res = params.resolution or _mean_gsd(views, sum(h_range) / 2)
+    res = params.resolution or mean_gsd(views, sum(h_range) / 2)
     from pyproj import Transformer
 
     tr = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
@@ -159,7 +159,10 @@ def default_grid(views: Sequence[View], h_range: tuple[float, float], params: DS
     return GroundGrid.from_bounds(crs, bounds, res, chunk=params.chunk)
 
 
-def _mean_gsd(views: Sequence[View], h: float) -> float:
+def mean_gsd(views: Sequence[View], h: float) -> float:
+    """The views' mean ground sample distance, metres (rounded to the
+    millimetre): the ground length of one pixel step along rows and along
+    columns at each view's centre, at ellipsoidal height ``h``."""
     from pyproj import Geod
 
     geod = Geod(ellps="WGS84")

@@ -20,7 +20,9 @@ Conventions
 - **Writes are atomic** (:func:`atomic_path`): every writer writes to a
   hidden temporary sibling and renames it onto the final name only when the
   write succeeded. A killed run leaves at most a hidden ``.NAME.tmp-*``
-  sibling, never a half-written product under the final name. Paths are
+  sibling (and what its writer put beside it), never a half-written
+  product under the final name; the next run that takes the folder's lock
+  removes them (:func:`tiledsm.io.atomic.sweep_temporaries`). Paths are
   local (POSIX rename); object stores are not supported by the writers.
 - **Resumable stores** (:func:`create_store`, :class:`ChunkStore`,
   :func:`write_blocks`): a stage's output grid is a zarr v3 store whose

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 import uuid
 from pathlib import Path
+from glob import escape as glob_escape
 from typing import Iterator
 
 from tiledsm.errors import TiledsmError
@@ -36,6 +38,33 @@ def withdraw(folder: str | os.PathLike, names) -> list[str]:
 
 def _tmp_sibling(final: Path, tag: str) -> Path:
     return final.with_name(f".{final.name}.{tag}-{uuid.uuid4().hex[:10]}{final.suffix}")
+
+
+#: names of :func:`atomic_path`'s temporaries (``.dsm.tif.tmp-0123456789.tif``) and of what writers put
+#: beside them (the COG's ``….src.tif`` and GDAL's ``….ovr.tmp``, ``….aux.xml``), and of a product
+#: renamed aside by :func:`commit_path` (``.dsm.zarr.old-…``)
+TEMPORARY = re.compile(r"^\..+\.(tmp|old)-[0-9a-f]{10}")
+#: folders :func:`sweep_temporaries` does not enter: stores of many chunk files, which hold no temporary
+_NOT_ENTERED = (".zarr", ".zarr.partial")
+
+
+def sweep_temporaries(folder: str | os.PathLike, depth: int = 3) -> list[Path]:
+    """Remove the temporaries that a killed run left in ``folder`` and its
+    subfolders (down to ``depth``): a killed process never reaches
+    :func:`atomic_path`'s clean-up, and a COG export leaves an
+    uncompressed copy of the whole grid (gigabytes on a whole scene).
+    Call it only while holding the folder's lock
+    (:class:`tiledsm.io.lock.OutputLock`): then no live run is writing
+    them. Returns the paths removed."""
+    removed = []
+    for root, dirs, files in os.walk(folder):
+        level = len(Path(root).relative_to(folder).parts)
+        for name in [*files, *dirs]:
+            if TEMPORARY.match(name):
+                remove_path(Path(root) / name)
+                removed.append(Path(root) / name)
+        dirs[:] = [d for d in dirs if level < depth and not TEMPORARY.match(d) and not d.endswith(_NOT_ENTERED)]
+    return removed
 
 
 def commit_path(tmp: Path, final: Path) -> None:
@@ -91,8 +120,9 @@ def atomic_path(path: str | os.PathLike, overwrite: bool = True) -> Iterator[Pat
             raise TiledsmError(f"{final}: the writer produced nothing at its temporary path {tmp}")
         commit_path(tmp, final)
     except BaseException:
-        remove_path(tmp)
-        remove_path(Path(str(tmp) + ".aux.xml"))
+        # the temporary and whatever its writer put beside it (a COG's source, GDAL's .ovr.tmp, .aux.xml)
+        for p in [tmp, *tmp.parent.glob(glob_escape(tmp.name) + ".*")]:
+            remove_path(p)
         raise
 
 

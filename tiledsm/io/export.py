@@ -31,6 +31,16 @@ def _tag_value(v) -> str:
 
 
 
+#: seconds a COG export waits between its uncompressed source and the COG (tests set it to kill a run there)
+EXPORT_PAUSE_ENV = "TILEDSM_TEST_EXPORT_PAUSE_S"
+
+
+def _pause_for_tests() -> None:
+    import time
+
+    time.sleep(float(os.environ.get(EXPORT_PAUSE_ENV) or 0))
+
+
 def _cache_mb() -> int:
     """The GDAL block cache of exports, MiB: the process's ``GDAL_CACHEMAX``
     (set by :mod:`tiledsm` unless the user set it). Set on the ``Env`` too,
@@ -192,6 +202,7 @@ def write_cog(
                 da.data, src, dtype=dt, nodata=nodata, transform=transform, crs=crs, rpc=rpc, tags=tags,
                 compress=None, blocksize=blocksize,
             )
+            _pause_for_tests()
             with rasterio.Env(GDAL_PAM_ENABLED="NO", GDAL_CACHEMAX=_cache_mb()):
                 rasterio.shutil.copy(src, tmp, driver="COG", **opts)
         finally:

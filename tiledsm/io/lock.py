@@ -182,6 +182,7 @@ class OutputLock:
                 try:
                     self._create()
                     self._held = True
+                    self._sweep()
                     return
                 except FileExistsError:
                     pass
@@ -193,6 +194,16 @@ class OutputLock:
         raise OutputLockedError(
             f"{self.folder}: could not take the lock {self.path} (another tiledsm run took it first)"
         )
+
+    def _sweep(self) -> None:
+        """Remove what a killed run left half-written in the folder, now that
+        no other run can be writing there (:func:`tiledsm.io.atomic.sweep_temporaries`)."""
+        from tiledsm.io.atomic import sweep_temporaries
+
+        removed = sweep_temporaries(self.folder)
+        if removed:
+            log.warning("%s: removed %d temporaries an interrupted run left: %s", self.folder, len(removed),
+                        ", ".join(str(p.relative_to(self.folder)) for p in removed))
 
     def _refuse_or_take_over(self, info: dict[str, Any] | None, take_over: bool) -> None:
         """Raise if the lock of ``info`` is live (or stale and not

@@ -22,11 +22,17 @@ by :func:`plan_recipe` (``tiledsm dsm`` and ``tiledsm run``),
   refuses (as the run itself would) a store computed from other inputs or
   parameters (:func:`tiledsm.provenance.check_resume`) or a folder another
   live run holds;
+- contacts an existing ``--scheduler`` (a few seconds at most,
+  :func:`tiledsm.cluster.check_scheduler`) and counts its workers;
 - refuses what cannot work with one line naming the option: a grid beyond
   :class:`Limits` (lifted by ``--allow-large``), ``--workers`` < 1, an SR
-  scale with no weights, a reference, mask or grid that misses the scene;
+  scale with no weights, a reference, mask or grid that misses the scene,
+  a scheduler address where no dask scheduler answers, an output folder
+  on a read-only file system or without write permission;
 - collects warnings that matter (a grid mostly outside the images, a
-  reference covering little of the grid, a mask that excludes nothing);
+  reference covering little of the grid, a mask that excludes nothing,
+  DSM cells finer than a fifth of the images' GSD, a scheduler without
+  workers);
   runs add their own (low completeness) and write them all into
   ``metrics.json`` (``warnings``).
 

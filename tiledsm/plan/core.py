@@ -39,6 +39,7 @@ class FieldNames:
     height_range: str = "--height-range"
     geoid: str = "--geoid"
     workers: str = "--workers"
+    scheduler: str = "--scheduler"
 
 
 #: names of ``tiledsm dsm``'s options
@@ -48,6 +49,7 @@ RECIPE_NAMES = FieldNames(
     images="input.images", reference="input.reference", like="grid.like", bounds="grid.bounds",
     resolution="grid.resolution", crs="grid.crs", chunk="grid.chunk", levels="match.levels",
     height_range="match.height_range", geoid="output.geoid", workers="cluster.workers",
+    scheduler="cluster.address",
 )
 
 
@@ -266,25 +268,58 @@ def describe_cluster(config) -> str:
         return "in this process (synchronous scheduler)"
     if config.scheduler == "threads":
         return f"in this process: {config.local_workers} threads (threaded scheduler, no worker processes)"
-    return f"existing cluster at {config.scheduler} (not contacted by the plan)"
+    return f"existing cluster at {config.scheduler}"
+
+
+def is_address(config) -> bool:
+    """Whether a :class:`~tiledsm.cluster.ClusterConfig` names an existing
+    scheduler (rather than a cluster or scheduler this process starts)."""
+    return config is not None and config.scheduler not in (None, "threads", "synchronous")
 
 
 def new_plan(command: str, out: str | os.PathLike, cluster=None, *, limits: Limits = Limits(),
-             workers: str = "--workers", folder: bool = True) -> Plan:
+             workers: str = "--workers", folder: bool = True, scheduler: str = "--scheduler") -> Plan:
     """An empty :class:`Plan` of ``command`` writing ``out`` (made
     absolute), after the checks every command shares: ``workers`` (the
-    option or field naming the worker count) >= 1, and, for an output
+    option or field naming the worker count) >= 1; an existing scheduler
+    (``scheduler``: the option or field naming its address) answers, in
+    seconds (:func:`tiledsm.cluster.check_scheduler`); for an output
     ``folder``, no live run holding it (:meth:`tiledsm.io.lock.OutputLock.check`)."""
     out = Path(out).expanduser().resolve()
     check_workers(getattr(cluster, "workers", None), workers)
+    where = describe_cluster(cluster)
+    warnings = []
+    if is_address(cluster):
+        from tiledsm.cluster import check_scheduler
+
+        n = check_scheduler(cluster.scheduler, scheduler)
+        where += f": {n} workers now (the plan contacted it)"
+        if n == 0:
+            warnings.append(f"{scheduler} {cluster.scheduler}: the scheduler has no workers yet; the run waits "
+                            "until some join")
     if folder and out.exists() and not out.is_dir():
         raise InvalidOptionError(f"{out}: --out: is a file, expected a folder (new or from an earlier run)")
     if folder and out.is_dir():
         from tiledsm.io.lock import OutputLock
 
         OutputLock(out).check()
-    return Plan(command, out, cluster=describe_cluster(cluster), limits=limits)
+    check_writable(out if folder else out.parent, "--out" if folder else "OUTPUT")
+    return Plan(command, out, cluster=where, limits=limits, warnings=warnings)
 
+
+def check_writable(folder: Path, name: str) -> None:
+    """Refuse an output ``folder`` (absolute) that the run could not write:
+    it, or the nearest folder above it that exists (where it would be
+    created), is on a read-only file system or not writable by this user.
+    The message names ``name`` (the option), that folder and the reason."""
+    from tiledsm.writable import unwritable
+
+    fault = unwritable(folder)
+    if fault is None:
+        return
+    existing, reason = fault
+    where = "" if existing == folder else f" (where {folder} would be created)"
+    raise InvalidOptionError(f"{existing}: {name}: cannot write into this folder{where}: {reason}")
 
 def raster_header(path: str, name: str) -> dict:
     """CRS, bounds, shape and dtype of a raster (a GDAL raster, or a

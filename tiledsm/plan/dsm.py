@@ -224,6 +224,7 @@ def plan_dsm(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names
     report["grid"] = {"crs": grid.crs, "resolution": grid.resolution, "width": grid.width, "height": grid.height,
                       "chunk": grid.chunk}
     plan.grid = grid_text(grid)
+    _check_resolution(plan, grid, views, h_range, what if like else f"{names.resolution} {grid.resolution:g}")
     _check_seen(plan, grid, views, h_range, what)
     if reference:
         _check_reference(plan, reference, grid, names.reference)
@@ -271,6 +272,25 @@ def _check_given_range(plan: Plan, given: tuple[float, float], tie: Sequence[flo
         raise MatchingError(f"{text}, outside the given range: every cell would be NaN")
     if common < 0.5 * (tie[1] - tie[0]):
         plan.warn(f"{text}; the given range covers {common / (tie[1] - tie[0]):.0%} of them")
+
+
+#: a DSM cell finer than this fraction of the images' GSD draws a warning
+FINEST_OF_GSD = 0.2
+
+
+def _check_resolution(plan: Plan, grid, views, h_range, what: str) -> None:
+    """Warn when the cells are finer than :data:`FINEST_OF_GSD` of the
+    images' GSD: the DSM cannot show more than the images do, and costs
+    the square of the ratio in cells, memory and time."""
+    from tiledsm.dsm.views import mean_gsd
+
+    gsd = mean_gsd(views, float(sum(h_range) / 2))
+    if grid.resolution < FINEST_OF_GSD * gsd:
+        plan.warn(
+            f"{what}: cells of {grid.resolution:g} m are finer than a fifth of the images' GSD ({gsd:g} m): the DSM "
+            f"cannot resolve more than the images show, and has {(gsd / grid.resolution) ** 2:,.0f} times the cells "
+            f"(and time) of one at the GSD"
+        )
 
 
 def _check_seen(plan: Plan, grid, views, h_range, what: str) -> None:

@@ -27,7 +27,7 @@ def plan_recipe(
     ``train_sr``) the checks that need no stage to run -- inputs exist,
     SR weights exist for ``sr.scale``, a stable mask overlaps the scene --
     while their stages plan their own grids when they run."""
-    plan = new_plan(command, out, cluster, limits=limits, workers=names.workers)
+    plan = new_plan(command, out, cluster, limits=limits, workers=names.workers, scheduler=names.scheduler)
     if recipe.pipeline == "dsm":
         return plan_dsm(plan, recipe, cluster, overwrite=overwrite, names=names)
     plan.notes.append(f"pipeline {recipe.pipeline}: each stage plans its grid, graph and memory when it runs")
