@@ -13,12 +13,11 @@ from typing import Sequence
 #: of which ~28 MiB was that task's cost volumes
 WORKER_BASELINE_MIB = 270
 
-#: host memory a process adds once torch has set up a CUDA device, MiB:
-#: measured on an H200 machine, a DSM run matching through torch on the GPU
-#: peaked 767 MiB (s2p pair) and 794 MiB (4096² scene) above the same run
-#: matching on its CPU (benchmarks/dsm.py --devices cpu cuda; the results are
-#: in git: git show c7ac1d7:benchmarks/results/dsm_cuda_h200.json)
-CUDA_CONTEXT_MIB = 780
+#: host memory a process adds once it matches on a CUDA device, MiB:
+#: measured on an H100 machine, the peak RSS of benchmarks/cuda_kernel.py grew
+#: from 313 to 522 MiB at its first task matched by the 'cuda' kernel (numba's
+#: CUDA context and driver; benchmarks/results/cuda_kernel.json, peak_rss_mib)
+CUDA_CONTEXT_MIB = 210
 
 
 MIB = 2**20
