@@ -57,7 +57,7 @@ Usage::
     .venv/bin/python benchmarks/dsm.py --cases synth4096 --workers 2 --devices cpu cuda --graph-sizes  # on a GPU
 
 ``--devices`` runs each case with matching on each device (``tiledsm dsm
---device``; ``cpu`` is the compiled kernel, another the torch kernel there).
+--device``; ``cpu`` is the compiled kernel, ``cuda`` the same matching as CUDA kernels).
 
 Writes ``benchmarks/results/dsm.json`` and prints a markdown table.
 """
@@ -147,9 +147,13 @@ def planned_worker_mib(argv: list[str]) -> float | None:
 
 
 def _device_name(device: str) -> str:
-    import torch
+    from numba import cuda
 
-    return torch.cuda.get_device_name(torch.device(device)) if device.startswith("cuda") else device
+    if not device.startswith("cuda"):
+        return device
+    with cuda.gpus[int(device.partition(":")[2] or 0)]:
+        name = cuda.get_current_device().name
+    return name.decode() if isinstance(name, bytes) else name
 
 
 def run_case(name: str, workers: int, run_dir: Path, chunk: int, timeout: float,
@@ -251,7 +255,7 @@ def _offset(r: dict) -> str:
 
 
 def _scheduler(r: dict) -> str:
-    # rows written before --schedulers were local clusters; matching on a torch device is named beside it
+    # rows written before --schedulers were local clusters; matching on a GPU is named beside it
     name = r.get("scheduler", "cluster")
     return f"{name}, {r['device']} ({r['device_name']})" if r.get("device") else name
 

@@ -93,3 +93,77 @@ def test_a_worker_killed_at_its_memory_limit_is_one_clear_error():
         with pytest.raises(WorkerMemoryError, match=r"memory limit: 400\.00 MiB per worker.*smaller chunks"):
             with compute_context(ClusterConfig(workers=1, memory_limit="400MiB", progress=False)):
                 da.map_blocks(hog, da.zeros(2, chunks=1), dtype=float).compute()
+
+
+# ------------------------------------------------------------------ on a GPU
+def test_gpu_memory_of_a_task():
+    """The GPU's share of a task (the formula of estimate_worker_memory):
+    volume and aggregated costs, samples (the band's wider span below the
+    coarsest level), image windows, per-cell arrays; none on the CPU."""
+    from tiledsm.plan.memory import SAMPLE_SPAN, estimate_worker_memory
+
+    cells, nd, nv, W, f = 600 * 500, 40, 3, 10**6, 2
+    held = 4 * nv * W // (f * f)
+    coarse = estimate_worker_memory((600, 500), nd, nv, W, f, on_device=True)
+    assert coarse.device == 8 * cells * nd + 4 * nv * cells * nd + held + 56 * cells
+    band = estimate_worker_memory((600, 500), nd, nv, W, f, search_band=True, on_device=True)
+    assert band.device == 8 * cells * nd + 4 * nv * cells * int(SAMPLE_SPAN * nd) + held + 56 * cells
+    assert estimate_worker_memory((600, 500), nd, nv, W, f).device == 0
+    assert "GPU ~" in coarse.text() and "GPU" not in estimate_worker_memory((600, 500), nd).text()
+
+
+def test_tasks_per_gpu_of_each_kind_of_cluster():
+    from tiledsm.cluster import JobQueueConfig, tasks_per_device
+
+    assert tasks_per_device(ClusterConfig(workers=3)) == 3
+    assert tasks_per_device(ClusterConfig(scheduler="threads", workers=16)) == 16
+    assert tasks_per_device(ClusterConfig(scheduler="synchronous")) == 1
+    assert tasks_per_device(ClusterConfig(jobqueue=JobQueueConfig("slurm", cores=8, processes=4, memory="16GiB"))) == 4
+    assert tasks_per_device(ClusterConfig(scheduler="tcp://h:8786")) is None
+
+
+@pytest.fixture
+def pretend_gpu(monkeypatch):
+    """A CUDA device with ``free`` bytes (set by the test) for the plan:
+    the kernel's device check passes and the GPU's memory is ``free``."""
+    import dataclasses
+
+    from tiledsm.match import cuda_kernel
+    from tiledsm.match.kernels import KERNELS
+
+    monkeypatch.setitem(KERNELS, "cuda", dataclasses.replace(KERNELS["cuda"], check_device=lambda device: None))
+    gpu = {"free": 80 * 2**30}
+    monkeypatch.setattr(cuda_kernel, "memory_info", lambda device: (gpu["free"], 80 * 2**30))
+    return gpu
+
+
+def _gpu_plan(scene, out, workers: int = 2, **grid):
+    recipe = DSMRecipe.model_validate({
+        "pipeline": "dsm", "input": {"images": [str(v) for v in scene.views]},
+        "grid": {"like": str(scene.truth_dsm), **grid},
+        "match": {**FAST, "params": {"kernel": "cuda", "device": "cuda"}}})
+    return plan_recipe(recipe, out, ClusterConfig(scheduler="threads", workers=workers))
+
+
+def test_default_chunk_shrinks_to_fit_a_gpu(scene, tmp_path, pretend_gpu):
+    from tiledsm.plan.dsm import GPU_USABLE
+
+    # the oracle: each chunk side planned explicitly (on the 256² scene,
+    # measured: 63 MiB for one task of the whole grid from chunks of 192 up,
+    # 16 MiB at chunks of 128)
+    need = {c: _gpu_plan(scene, tmp_path / f"c{c}", chunk=c).memory.device for c in (512, 256, 192, 128)}
+    assert need[128] < need[192] == need[256] == need[512]
+    # 2 tasks at once, each GPU_USABLE of half the free memory: 128 fits, 192 does not
+    pretend_gpu["free"] = int((need[128] + 2**10) * 2 / GPU_USABLE)
+    fitted = _gpu_plan(scene, tmp_path / "fit")
+    assert fitted.recipe.grid.chunk == 128 and fitted.memory.device == need[128]
+    assert any("chunks of 128 chosen to fit a task's share of the free memory of GPU cuda (2 tasks at once)" in n
+               for n in fitted.notes)
+    # a given chunk beyond it is refused, naming the chunk and the GPU
+    with pytest.raises(InvalidOptionError, match=r"grid.chunk 512: a task would need on the GPU ~.* beyond its "
+                                                 r"share of the free memory of GPU cuda \(2 tasks at once\)"):
+        _gpu_plan(scene, tmp_path / "given", chunk=512)
+    # a GPU too small for any chunk tried: refused, naming what to change
+    pretend_gpu["free"] = 2**20
+    with pytest.raises(InvalidOptionError, match=r"grid.chunk: even the smallest chunk tried .* GPU cuda .*--workers"):
+        _gpu_plan(scene, tmp_path / "tiny")

@@ -37,6 +37,7 @@ __all__ = [
     "job_script",
     "shared_cluster",
     "single_threaded_libraries",
+    "tasks_per_device",
     "worker_memory_budget",
 ]
 
@@ -327,6 +328,21 @@ def worker_memory_budget(config: ClusterConfig | None) -> int | None:
     if config.scheduler not in (None, "threads"):  # threads share this process: each task its share, as a worker's
         return None
     return int(psutil.virtual_memory().total / config.local_workers)
+
+
+def tasks_per_device(config: ClusterConfig | None) -> int | None:
+    """Matching tasks that may run at once on one GPU of a worker's
+    machine: the local workers (threads or processes, one task each), a
+    batch job's worker processes, one when synchronous; ``None`` for an
+    existing cluster (its layout is not known here)."""
+    config = config or ClusterConfig()
+    if config.jobqueue is not None:
+        return int(config.jobqueue.processes or config.jobqueue.cores)
+    if config.scheduler == "synchronous":
+        return 1
+    if config.scheduler not in (None, "threads"):
+        return None
+    return int(config.local_workers)
 
 
 @contextlib.contextmanager

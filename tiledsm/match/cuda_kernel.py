@@ -48,7 +48,7 @@ import numpy as np
 
 from tiledsm.match.sweep import sample_plan, view_pairs
 
-__all__ = ["DeviceVolume", "aggregate", "best", "check_device", "cost_volume"]
+__all__ = ["DeviceVolume", "aggregate", "best", "check_device", "cost_volume", "memory_info"]
 
 def _simulated() -> bool:
     from numba import config
@@ -85,6 +85,13 @@ def check_device(device: str) -> None:
         raise ValueError(f"device {device!r}: numba sees no CUDA GPU here (the 'cuda' kernel needs one)")
     if index >= len(cuda.gpus):
         raise ValueError(f"device {device!r}: only {len(cuda.gpus)} CUDA device(s) here")
+
+
+def memory_info(device: str) -> tuple[int, int]:
+    """``(free, total)`` bytes of the GPU ``device``."""
+    with _Selected(device) as cuda:
+        free, total = cuda.current_context().get_memory_info()
+    return int(free), int(total)
 
 
 def _device_index(device: str) -> int:

@@ -15,7 +15,7 @@ from tiledsm.errors import (
     NoOverlapError,
     TiledsmError,
 )
-from tiledsm.cluster import worker_memory_budget
+from tiledsm.cluster import tasks_per_device, worker_memory_budget
 from tiledsm.plan.core import (
     MOSTLY_OUTSIDE,
     RECIPE_NAMES,
@@ -243,8 +243,11 @@ def plan_dsm(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names
         return ds
 
     ds = build(grid, params)
-    budget = worker_memory_budget(cluster)
-    if budget is not None and plan.memory.total > budget:
+    # a worker's memory, then the GPU's share of a task: the default chunk
+    # shrinks until both fit (a smaller chunk needs less of each)
+    for budget in (_WorkerBudget(worker_memory_budget(cluster)), _GPUBudget.of(params.match.device, cluster)):
+        if budget.bytes is None or budget.need(plan.memory) <= budget.bytes:
+            continue
         chunk = _chunk_for_budget(plan, views, grid, h_range, int(ds.attrs["levels"]), params, budget,
                                   "chunk" in spec.model_fields_set, names)
         grid, params = dataclasses.replace(grid, chunk=chunk), dataclasses.replace(params, chunk=chunk)
@@ -334,22 +337,77 @@ def _check_reference(plan: Plan, path: str, grid, name: str) -> None:
 #: chunk sides tried, in order, when the default chunk does not fit a worker's memory
 _SMALLER_CHUNKS = (384, 256, 192, 128, 96, 64)
 
+#: share of a GPU's free memory the plan gives to the matching tasks that
+#: run on it at once (the rest is left to the allocator's rounding and to
+#: the kernels' small buffers, which the estimate leaves out)
+GPU_USABLE = 0.8
 
-def _chunk_for_budget(plan: Plan, views, grid, h_range, levels: int, params, budget: int, explicit: bool,
-                      names: FieldNames) -> int:
-    """The largest chunk side whose estimated worker peak fits ``budget``
-    bytes, when the chunk was not given (``explicit``); an error naming the
-    chunk option otherwise, or when no chunk fits."""
+
+@dataclasses.dataclass(frozen=True)
+class _WorkerBudget:
+    """A worker's memory: what a task's estimate must fit."""
+
+    bytes: int | None
+    what = "a worker would need"
+    whose = "a worker's memory"
+    beyond = "its memory"
+    remedy = "fewer workers, or more memory per worker (--memory-per-worker / cluster.memory_per_worker)"
+
+    @staticmethod
+    def need(memory) -> int:
+        return memory.total
+
+
+@dataclasses.dataclass(frozen=True)
+class _GPUBudget(_WorkerBudget):
+    """A task's share of the GPU it matches on."""
+
+    what = "a task would need on the GPU"
+    remedy = "fewer workers (--workers), or a GPU with more free memory"
+    tasks: int = 1
+    device: str = "cuda"
+
+    @property
+    def whose(self) -> str:
+        return f"a task's share of the free memory of GPU {self.device} ({self.tasks} tasks at once)"
+
+    @property
+    def beyond(self) -> str:
+        return f"its share of the free memory of GPU {self.device} ({self.tasks} tasks at once)"
+
+    @staticmethod
+    def need(memory) -> int:
+        return memory.device
+
+    @classmethod
+    def of(cls, device: str, cluster) -> _GPUBudget:
+        """The budget of one task on ``device`` (none off a GPU, or where
+        the tasks per GPU are not known: an existing cluster)."""
+        tasks = tasks_per_device(cluster) if str(device).startswith("cuda") else None
+        if tasks is None:
+            return cls(None)
+        from tiledsm.match.cuda_kernel import memory_info
+
+        free, _ = memory_info(device)
+        return cls(int(GPU_USABLE * free / tasks), tasks=tasks, device=str(device))
+
+
+def _chunk_for_budget(plan: Plan, views, grid, h_range, levels: int, params, budget: _WorkerBudget,
+                      explicit: bool, names: FieldNames) -> int:
+    """The largest chunk side whose estimate fits ``budget`` (a worker's
+    memory, or a task's share of a GPU), when the chunk was not given
+    (``explicit``); an error naming the chunk option otherwise, or when no
+    chunk fits."""
     from dask.utils import format_bytes
 
     from tiledsm.dsm import min_chunk
 
-    need = plan.memory.total
-    remedy = "fewer workers, or more memory per worker (--memory-per-worker / cluster.memory_per_worker)"
+    need = budget.need(plan.memory)
     if explicit:
         raise InvalidOptionError(
-            f"{names.chunk} {grid.chunk}: a worker would need ~{format_bytes(need)} (estimated), beyond its memory "
-            f"{format_bytes(budget)}; use a smaller {names.chunk} (or leave it out to have one chosen), {remedy}")
+            f"{names.chunk} {grid.chunk}: {budget.what} ~{format_bytes(need)} (estimated), beyond "
+            f"{budget.beyond} {format_bytes(budget.bytes)}; use a smaller {names.chunk} (or leave it out to have one "
+            f"chosen), {budget.remedy}")
     tried = grid.chunk
     for chunk in _SMALLER_CHUNKS:
         if chunk >= grid.chunk or chunk < min_chunk(params):
@@ -357,11 +415,11 @@ def _chunk_for_budget(plan: Plan, views, grid, h_range, levels: int, params, bud
         tried = chunk
         _, memory = dsm_levels(views, dataclasses.replace(grid, chunk=chunk), h_range, levels,
                                dataclasses.replace(params, chunk=chunk))
-        if memory.total <= budget:
-            plan.notes.append(f"chunks of {chunk} chosen to fit a worker's memory {format_bytes(budget)} "
+        if budget.need(memory) <= budget.bytes:
+            plan.notes.append(f"chunks of {chunk} chosen to fit {budget.whose} {format_bytes(budget.bytes)} "
                               f"(chunks of {grid.chunk} would need ~{format_bytes(need)})")
             return chunk
     raise InvalidOptionError(
-        f"{names.chunk}: even the smallest chunk tried ({tried}) needs more than a "
-        f"worker's memory {format_bytes(budget)} (estimated; the height range's candidates set it): narrow "
-        f"{names.height_range}, or use {remedy}")
+        f"{names.chunk}: even the smallest chunk tried ({tried}) needs more than "
+        f"{budget.whose} {format_bytes(budget.bytes)} (estimated; the height range's candidates set it): narrow "
+        f"{names.height_range}, or use {budget.remedy}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Sequence
@@ -12,6 +13,13 @@ from typing import Sequence
 #: and one that has run a small matching task (numba kernels loaded) 296 MiB,
 #: of which ~28 MiB was that task's cost volumes
 WORKER_BASELINE_MIB = 270
+
+#: the most heights a cell of a finer level is sampled at, in candidates
+#: of the level: a cell is sampled at the labels of every band whose ZNCC
+#: window holds it. Measured 1.88 (49 labels for bands of up to 26) on the
+#: level-0 task of a 2048² synthetic scene (benchmarks/cuda_kernel.py
+#: --capture; tiledsm.match.sweep.sample_plan)
+SAMPLE_SPAN = 2.0
 
 #: host memory a process adds once it matches on a CUDA device, MiB:
 #: measured on an H100 machine, the peak RSS of benchmarks/cuda_kernel.py grew
@@ -80,6 +88,8 @@ class MemoryEstimate:
         windows held while matching.
     reading : int
         Reading the largest image window (the other windows held).
+    device : int
+        GPU memory of one task matching on a CUDA device (0 on the CPU).
     """
 
     total: int
@@ -87,13 +97,16 @@ class MemoryEstimate:
     cost_volumes: int
     matching: int
     reading: int
+    device: int = 0
 
     def text(self) -> str:
-        """One line: total (GiB and MiB) and parts (GiB)."""
+        """One line: total (GiB and MiB) and parts (GiB); the GPU's share
+        of a task when it matches on one."""
+        gpu = f"; GPU ~{self.device / GIB:.2f} GiB per task" if self.device else ""
         return (
             f"~{self.total / GIB:.2f} GiB ({self.total / MIB:.0f} MiB) per worker (baseline {self.baseline / GIB:.2f} + "
             f"max(matching {self.matching / GIB:.2f} [cost volumes {self.cost_volumes / GIB:.2f}], "
-            f"reading {self.reading / GIB:.2f}))"
+            f"reading {self.reading / GIB:.2f})){gpu}"
         )
 
 
@@ -108,6 +121,7 @@ def estimate_worker_memory(
     baseline: int = WORKER_BASELINE_MIB * MIB,
     search_band: bool = False,
     volumes: int = 2,
+    on_device: bool = False,
 ) -> MemoryEstimate:
     """Peak memory of a worker running one matching task.
 
@@ -135,6 +149,15 @@ def estimate_worker_memory(
     line buffers, the returned chunk) is a few 2-D arrays, left out. Tasks
     run one at a time per worker (one thread each).
 
+    On a CUDA device (``on_device``, :mod:`tiledsm.match.cuda_kernel`) the
+    task holds on the GPU the cost volume and the aggregated costs, its
+    samples (``nv`` float32 per cell and sampled height: ``s = nd`` at the
+    coarsest level, up to :data:`SAMPLE_SPAN` ``nd`` below it), the image
+    windows and the per-cell arrays (``h_ref``, bands, labels: 56 bytes a
+    cell)::
+
+        device = 8 ny nx nd + 4 nv ny nx s + 4 nv W / f² + 56 ny nx
+
     Parameters
     ----------
     task_cells : (int, int)
@@ -156,6 +179,8 @@ def estimate_worker_memory(
         The task searches a band from a coarser level (``b`` above).
     volumes : int
         ``k``, cost-volume-sized buffers alive at once.
+    on_device : bool
+        The task matches on a CUDA device: ``device`` is filled.
 
     Returns
     -------
@@ -167,7 +192,12 @@ def estimate_worker_memory(
     volume_bytes = int(volumes) * 4 * cells * int(candidates)
     matching = volume_bytes + 4 * views * cells + (12 * cells if search_band else 0) + held
     reading = window_px * (int(itemsize) + 10) + held
-    return MemoryEstimate(int(baseline) + max(matching, reading), int(baseline), volume_bytes, matching, reading)
+    device = 0
+    if on_device:
+        span = math.ceil(SAMPLE_SPAN * int(candidates)) if search_band else int(candidates)
+        device = 8 * cells * int(candidates) + 4 * views * cells * span + held + 56 * cells
+    return MemoryEstimate(int(baseline) + max(matching, reading), int(baseline), volume_bytes, matching, reading,
+                          device)
 
 
 def worker_baseline(match) -> int:
@@ -237,10 +267,13 @@ def dsm_levels(views, grid, h_range: tuple[float, float], levels: int, params) -
                 window = max(window, (win[1] - win[0]) * (win[3] - win[2]))
         est = estimate_worker_memory(task, nd, len(views), window, geom.factor, itemsize,
                                      baseline=worker_baseline(params.match), search_band=level != levels - 1,
-                                     volumes=3 if params.match.kernel == "reference" else 2)
+                                     volumes=3 if params.match.kernel == "reference" else 2,
+                                     on_device=str(params.match.device).startswith("cuda"))
         out.append(LevelPlan(level, g.shape, g.resolution, len(chunks[0]) * len(chunks[1]), geom.step, nd, task, window))
         if worst is None or est.total > worst.total:
-            worst = est
+            worst = dataclasses.replace(est, device=max(est.device, worst.device if worst else 0))
+        elif est.device > worst.device:
+            worst = dataclasses.replace(worst, device=est.device)
     return out, worst
 
 
