@@ -154,13 +154,13 @@ class CorrelationParams:
         """Pixels a block needs around its cells: the coarse window's half,
         and the fine window moved by up to ``search`` plus the Lanczos
         support; with a pyramid, the coarsest level's windows of the coarse
-        cells one cell beyond the block (at ``2**levels`` px per pixel) and
+        cells two cells beyond the block (at ``2**levels`` px per pixel) and
         the full-resolution windows moved by up to the reach."""
         single = max(self.coarse_window // 2, self.window // 2 + self.search + LANCZOS_A + 1) + 1
         if not self.levels:
             return single
         f = self.factor
-        coarse = 2 * self.step * f + f * single + f
+        coarse = 3 * self.step * f + f * single + f
         moved = self.reach + f + self.refine_search
         fine = max(self.window // 2 + moved, self.window // 2 + moved + LANCZOS_A + 1) + 1
         return max(coarse, fine)

@@ -66,6 +66,16 @@ def field_chunk(chunk: int, step: int) -> int:
     return max(step, int(round(chunk / step)) * step)
 
 
+def _deep_chunks(n: int, side: int, depth: int) -> tuple[int, ...]:
+    """Chunks of ``side`` along ``n`` pixels, the last merged into the one
+    before when it is shallower than ``depth`` (dask's overlap needs every
+    chunk at least as deep as the halo); ``side`` a multiple of the step."""
+    sizes = [side] * (n // side) + ([n % side] if n % side else [])
+    if len(sizes) > 1 and sizes[-1] < depth:
+        sizes[-2:] = [sizes[-2] + sizes[-1]]
+    return tuple(sizes)
+
+
 def _field_block(pre, post, *, params: CorrelationParams, halo: int, block_info=None) -> np.ndarray:
     (r0, r1), (c0, c1) = block_info[None]["array-location"][1:]
     return correlate_cells(pre, post, r1 - r0, c1 - c0, params, halo, (r0, c0))
@@ -164,7 +174,8 @@ def correlate_orthos(pre: xr.DataArray | str | Path, post: xr.DataArray | str | 
             arrays.append(d[: ny * s, : nx * s].astype(np.float32).rechunk(c))
         # dask's overlap needs chunks at least as deep as the halo
         if min(min(cs) for cs in arrays[0].chunks) < depth:
-            arrays = [a.rechunk(max(c, depth + s - depth % s)) for a in arrays]
+            side = max(c, depth + s - depth % s)
+            arrays = [a.rechunk(tuple(_deep_chunks(n, side, depth) for n in a.shape)) for a in arrays]
         chunks_out = ((N_LAYERS,), tuple(n // s for n in arrays[0].chunks[0]), tuple(n // s for n in arrays[0].chunks[1]))
         # one map_overlap: every block sees `depth` pixels of its neighbours
         # (NaN past the grid) and returns its (6, cells, cells)

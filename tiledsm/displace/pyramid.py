@@ -50,6 +50,9 @@ from tiledsm.displace.correlate import CorrelationParams, correlate_windows
 
 __all__ = ["box_mean", "coarse_candidates", "correlate_cells"]
 
+#: share of NaN pixels a coarse window may hold (its value is a candidate, verified at full resolution)
+COARSE_MAX_NODATA = 0.5
+
 
 def box_mean(img: np.ndarray, f: int, phase: tuple[int, int]) -> tuple[np.ndarray, tuple[int, int]]:
     """Means of ``f x f`` pixel boxes (NaN if any pixel is), the first box
@@ -91,8 +94,10 @@ def coarse_candidates(pre: np.ndarray, post: np.ndarray, rows: np.ndarray, cols:
     Returns
     -------
     ndarray
-        ``(n, 10, 2)`` candidates ``(dy, dx)``, full-resolution pixels, NaN
-        where none (module notes).
+        ``(n, 26, 2)`` candidates ``(dy, dx)``, full-resolution pixels, NaN
+        where none (module notes): the median of the 3 x 3 coarse cells
+        around, their values, and, where none of them has one, the values
+        of the 5 x 5 ring around them.
     """
     f, s = params.factor, params.step
     # global full-resolution pixel of the block arrays' [0, 0], and the phase that aligns boxes on the global lattice
@@ -100,27 +105,34 @@ def coarse_candidates(pre: np.ndarray, post: np.ndarray, rows: np.ndarray, cols:
     phase = tuple(int((-g) % f) for g in g0)
     pre_c, _ = box_mean(pre, f, phase)
     post_c, _ = box_mean(post, f, phase)
-    # coarse cells k (global) around the block's cells: k = i // f - 1 ... i // f + 1
-    k_r = np.arange(rows.min() // f - 1, rows.max() // f + 2)
-    k_c = np.arange(cols.min() // f - 1, cols.max() // f + 2)
+    # coarse cells k (global) around the block's cells: k = i // f - 2 ... i // f + 2
+    k_r = np.arange(rows.min() // f - 2, rows.max() // f + 3)
+    k_c = np.arange(cols.min() // f - 2, cols.max() // f + 3)
     # centre of coarse cell k: full-resolution (k + 0.5) * s * f, coarse pixel (k + 0.5) * s (global); local coarse
     # pixel = that minus the coarse image's first pixel ((g0 + phase) / f, an integer)
     lr = ((k_r + 0.5) * s - (g0[0] + phase[0]) // f).astype(np.int64)
     lc = ((k_c + 0.5) * s - (g0[1] + phase[1]) // f).astype(np.int64)
     R, C = np.meshgrid(lr, lc, indexing="ij")
-    coarse_params = dataclasses.replace(params, levels=0)
+    # a coarse value is only a hypothesis the full resolution verifies: windows half outside the data still give one
+    coarse_params = dataclasses.replace(params, levels=0, max_nodata=max(params.max_nodata, COARSE_MAX_NODATA))
     out = correlate_windows(pre_c, post_c, R.ravel(), C.ravel(), coarse_params)
     pred = np.stack([out[0], out[1]], axis=-1).reshape(len(lr), len(lc), 2) * f
-    # each cell's 3 x 3 coarse neighbourhood
-    ir = (rows.ravel() // f - k_r[0])[:, None] + np.array([-1, 0, 1])[None, :]
-    ic = (cols.ravel() // f - k_c[0])[:, None] + np.array([-1, 0, 1])[None, :]
-    nb = pred[ir[:, :, None], ic[:, None, :]].reshape(rows.size, 9, 2)
-    none = ~np.isfinite(nb).any(axis=1)  # no coarse value around: no candidate (not numpy's All-NaN warning)
-    med = np.nanmedian(np.where(none[:, None, :], 0.0, nb), axis=1)
+    # each cell's 5 x 5 coarse neighbourhood: the inner 3 x 3, and the outer ring where the inner has no value (an
+    # edge of the data, a decorrelated patch)
+    off = np.arange(-2, 3)
+    ir = (rows.ravel() // f - k_r[0])[:, None] + off[None, :]
+    ic = (cols.ravel() // f - k_c[0])[:, None] + off[None, :]
+    nb = pred[ir[:, :, None], ic[:, None, :]].reshape(rows.size, 25, 2)
+    inner_idx = np.array([12, 7, 11, 13, 17, 6, 8, 16, 18])  # the cell's own coarse cell first, then its 8 neighbours
+    ring_idx = np.setdiff1d(np.arange(25), inner_idx)
+    inner, ring = nb[:, inner_idx], nb[:, ring_idx].copy()
+    has_inner = np.isfinite(inner).all(axis=2).any(axis=1)
+    ring[has_inner] = np.nan
+    none = ~np.isfinite(inner).any(axis=1)  # no coarse value around: no median (not numpy's All-NaN warning)
+    med = np.nanmedian(np.where(none[:, None, :], 0.0, inner), axis=1)
     med = np.where(none, np.nan, med)[:, None, :]
-    # the median first (ties go to it), then the neighbours, the cell's own coarse value first among them
-    order = [4, 1, 3, 5, 7, 0, 2, 6, 8]
-    cands = np.concatenate([med, nb[:, order]], axis=1)
+    # the median first (ties go to it), then the neighbours
+    cands = np.concatenate([med, inner, ring], axis=1)
     cands[~np.isfinite(cands).all(axis=2)] = np.nan
     return _dedupe(cands, params.refine_search / 2)
 

@@ -1,0 +1,411 @@
+"""``pipeline: displace`` (and ``tiledsm displace PRE POST``): the
+horizontal displacement field between two orthoimages of any grid.
+
+PRE and POST are orthoimages (GeoTIFF/COG or tiledsm ortho ``.zarr``
+stores) in any projected CRS, cell size or origin. The plan
+(:func:`plan_displace`) reads their headers, refuses what cannot work
+(missing, unreadable or non-georeferenced input, no common ground, bad
+options) and states the grid both are read onto
+(:func:`tiledsm.displace.grid.displacement_grid`: PRE's own lattice by
+default). The run writes into ``OUT``:
+
+- ``pre/ortho.zarr``, ``post/ortho.zarr``: both orthos on that grid;
+- ``displacement.zarr``: ``dE``, ``dN`` (metres east/north, post minus
+  pre; NaN where unknown), ``sigma_dE``, ``sigma_dN`` (metres),
+  ``quality`` (phase coherence), ``peak`` (phase-correlation peak),
+  ``status`` (uint8: 0 measured, 1 no data, 2 no texture, 3 decorrelated:
+  a changed surface, cloud or moved shadow -- the correlation's quality,
+  peak or residual refused it; never interpolated);
+- ``dE.tif``, ``dN.tif``, ``sigma_dE.tif``, ``sigma_dN.tif`` (COGs),
+  ``displacement.png`` (arrows over PRE) and, with a fault trace,
+  ``profiles.png``;
+- ``metrics.json``, ``recipe.resolved.yaml``, ``run.log``.
+
+Frame: with a stable mask (polygons of moving ground to exclude), a plane
+(or the median) fitted on the remaining cells is removed from each
+component and the per-cell sigma is calibrated there (binned by the
+correlation's formal errors, :mod:`tiledsm.displace.uncertainty`, as the
+deformation recipe does). Without one, nothing is removed (the frame is
+the two grids' own) and the sigma is the correlation's formal error,
+uncalibrated (``metrics.json`` says which).
+
+Large offsets: ``max_displacement`` (metres) beyond ``search`` pixels
+runs the correlation coarse to fine (:mod:`tiledsm.displace.pyramid`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Literal, Optional
+
+import numpy as np
+from pydantic import Field
+
+from tiledsm.recipes import ClusterSpec, OutputSpec, StrictModel
+from tiledsm.workflows.displacement import CorrelationSpec
+
+__all__ = ["DisplaceRecipe", "plan_displace", "run_displace"]
+
+log = logging.getLogger("tiledsm.workflows.displace")
+
+#: status codes of the ``status`` layer
+STATUS = {"measured": 0, "no_data": 1, "no_texture": 2, "decorrelated": 3}
+
+
+class DisplaceInput(StrictModel):
+    pre: str = Field(..., description="pre-event orthoimage: GeoTIFF/COG or tiledsm ortho .zarr, projected CRS")
+    post: str = Field(..., description="post-event orthoimage: any projected CRS, cell size or origin")
+
+
+class DisplaceGrid(StrictModel):
+    like: Optional[str] = Field(None, description="measure on this raster's lattice (CRS, cell size, origin); "
+                                "default: PRE's own")
+    resolution: Optional[float] = Field(None, gt=0, description="cell size, metres, in PRE's CRS and origin")
+    chunk: int = Field(1024, ge=64, description="ortho pixels per chunk side")
+
+
+class DisplaceRecipe(StrictModel):
+    """``pipeline: displace``: two orthoimages to a displacement field."""
+
+    pipeline: Literal["displace"]
+    name: str = "displace"
+    input: DisplaceInput
+    grid: DisplaceGrid = DisplaceGrid()
+    displacement: CorrelationSpec = CorrelationSpec()
+    stable_mask: Optional[str] = Field(None, description="GeoJSON polygons EXCLUDED from stable terrain (moving "
+                                       "ground); the rest fixes the frame and calibrates sigma")
+    fault_trace: Optional[list[tuple[float, float]]] = Field(
+        None, min_length=2, max_length=2, description="two (lon, lat) points, WGS84 degrees: offsets and profiles "
+        "across it, right side (looking from the first point to the second) minus left")
+    cluster: ClusterSpec = ClusterSpec()
+    output: OutputSpec = OutputSpec()
+
+
+# --------------------------------------------------------------------------- plan
+#: how messages name the recipe's fields (the command passes its options instead)
+FIELD_NAMES = {"input.pre": "input.pre", "input.post": "input.post", "grid.like": "grid.like",
+               "stable_mask": "stable_mask", "fault_trace": "fault_trace"}
+
+
+def displace_grid(recipe: DisplaceRecipe, names: dict | None = None):
+    """The grid of a displace run and its inputs' descriptions (for the
+    plan): PRE and POST (and ``grid.like``) exist, read, are georeferenced
+    and overlap by a window."""
+    from tiledsm.displace.grid import displacement_grid, ortho_header
+    from tiledsm.plan.core import InputInfo, existing_file, readable_raster
+
+    names = {**FIELD_NAMES, **(names or {})}
+    heads, infos = {}, []
+    for key in ("pre", "post"):
+        role = names[f"input.{key}"]
+        path = existing_file(getattr(recipe.input, key), role)
+        if not Path(path).is_dir():
+            readable_raster(path, role)
+        heads[key] = h = ortho_header(path, role)
+        infos.append(InputInfo(role, path, f"{h['shape'][0]} x {h['shape'][1]} cells of {h['res'][0]:g} m, "
+                                           f"{h['crs_name']}"))
+    like = None
+    if recipe.grid.like:
+        lp = existing_file(recipe.grid.like, names["grid.like"])
+        like = ortho_header(lp, names["grid.like"])
+        infos.append(InputInfo(names["grid.like"], lp, f"{like['shape'][0]} x {like['shape'][1]} cells"))
+    grid = displacement_grid(heads["pre"], heads["post"], like=like, resolution=recipe.grid.resolution,
+                             names=(names["input.pre"], names["input.post"]), min_side=recipe.displacement.window)
+    return grid, infos
+
+
+def plan_displace(recipe: DisplaceRecipe, out, cluster=None, *, overwrite: bool = False, names=None):
+    """The plan of a displace run (module notes): inputs, the grid and its
+    origin, the pyramid, what an earlier run in ``out`` leaves.
+
+    ``names`` maps recipe fields to how the user spelled them (command
+    options); default: the field paths.
+
+    Raises
+    ------
+    InputFileError, GridError, NoOverlapError, InvalidOptionError
+    """
+    from tiledsm.plan.core import InputInfo, existing_file, new_plan
+
+    names = {**FIELD_NAMES, **(names or {})}
+    plan = new_plan("displace", out, cluster)
+    grid, infos = displace_grid(recipe, names)
+    plan.inputs.extend(infos)
+    spec = recipe.displacement
+    params = spec.correlation(grid.resolution)
+    plan.grid = grid.text()
+    cells = (grid.shape[0] // spec.step, grid.shape[1] // spec.step)
+    reach = params.reach * grid.resolution
+    plan.notes.append(
+        f"field: {cells[0]} x {cells[1]} cells every {spec.step} px ({spec.step * grid.resolution:g} m), windows of "
+        f"{spec.window} px ({spec.window * grid.resolution:g} m)")
+    if params.levels:
+        plan.notes.append(
+            f"coarse to fine: {params.levels} coarse level(s) (x{params.factor}), search {spec.search} px there: reach "
+            f"{params.reach} px ({reach:g} m) >= max_displacement {spec.max_displacement:g} m; full resolution "
+            f"searches {spec.refine_search} px around the coarse candidates")
+    else:
+        plan.notes.append(f"one level: search {spec.search} px ({reach:g} m) around zero; a larger offset is NaN "
+                          "(give --max-displacement METRES)")
+    if recipe.stable_mask:
+        mask = existing_file(recipe.stable_mask, names["stable_mask"])
+        plan.inputs.append(InputInfo(names["stable_mask"], mask))
+        from tiledsm.compare.stable import read_polygons
+        from tiledsm.errors import NoOverlapError
+        from tiledsm.plan.recipes import polygons_touch
+
+        if not polygons_touch(read_polygons(mask, grid.crs), grid.bounds):
+            raise NoOverlapError(f"{mask}: {names['stable_mask']}: no polygon lies within the grid {grid.bounds}: it "
+                                 "would exclude nothing")
+    else:
+        plan.notes.append("no stable mask: no frame correction; sigma = the correlation's formal error (uncalibrated)")
+    if recipe.fault_trace is not None:
+        fault_on_grid(recipe.fault_trace, grid.crs, names["fault_trace"])
+    plan.reuse = "nothing: the field is recomputed whole"
+    _check_earlier_run(recipe, plan.out, overwrite)
+    plan.product = grid
+    return plan
+
+
+def _check_earlier_run(recipe, out: Path, overwrite: bool) -> None:
+    """Refuse to replace an earlier run of other inputs or options in
+    ``out`` without ``overwrite`` (its ``recipe.resolved.yaml`` differs)."""
+    import yaml
+
+    from tiledsm.errors import InvalidOptionError
+
+    stored = out / "recipe.resolved.yaml"
+    if overwrite or not stored.is_file():
+        return
+    try:
+        same = yaml.safe_load(stored.read_text()) == recipe.model_dump(mode="json")
+    except (OSError, yaml.YAMLError):
+        same = False
+    if not same:
+        raise InvalidOptionError(f"{out}: --out: holds a run of other inputs or options ({stored.name}); pass "
+                                 "--overwrite to replace it, or choose another folder")
+
+
+def fault_on_grid(trace, crs: str, name: str = "fault_trace"):
+    """The :class:`~tiledsm.workflows.fault.Fault` of two (lon, lat) points in ``crs``."""
+    from pyproj import Transformer
+
+    from tiledsm.errors import InvalidOptionError
+    from tiledsm.workflows.fault import Fault
+
+    (lon0, lat0), (lon1, lat1) = trace
+    if not all(-180 <= lo <= 180 and -90 <= la <= 90 for lo, la in trace):
+        raise InvalidOptionError(f"{name}: (lon, lat) degrees expected, got {list(trace)}")
+    x, y = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform([lon0, lon1], [lat0, lat1])
+    if math.hypot(x[1] - x[0], y[1] - y[0]) == 0:
+        raise InvalidOptionError(f"{name}: the two points {list(trace)} are the same")
+    return Fault((x[0], y[0]), (x[1] - x[0], y[1] - y[0]))
+
+
+# --------------------------------------------------------------------------- run
+def _status(field, pre: np.ndarray, post: np.ndarray, step: int, min_texture: float) -> np.ndarray:
+    """Why each cell is NaN (:data:`STATUS`): no data where a tenth of its
+    ``step x step`` pixels lack PRE or POST, no texture where the PRE
+    window's std is under ``min_texture``, decorrelated otherwise."""
+    ny, nx = field["dE"].shape
+    gone = (~np.isfinite(pre[: ny * step, : nx * step]) | ~np.isfinite(post[: ny * step, : nx * step]))
+    share = gone.reshape(ny, step, nx, step).mean(axis=(1, 3))
+    st = np.full((ny, nx), STATUS["decorrelated"], np.uint8)
+    st[np.asarray(field["texture"]) < min_texture] = STATUS["no_texture"]
+    st[share > 0.1] = STATUS["no_data"]
+    st[np.isfinite(field["dE"]) & np.isfinite(field["dN"])] = STATUS["measured"]
+    return st
+
+
+def locate_trace(fields: dict, distance: np.ndarray, offsets: dict, fault, half_width: float, res: float) -> dict | None:
+    """Where the step of the field lies across the trace: the signed
+    distance ``d0`` whose step function best fits (least absolute misfit)
+    the displacement projected on the offset's direction and scaled 0 (left
+    block) .. 1 (right block), over cells within ``half_width`` metres.
+    ``d0`` is the located trace's offset from the given one (metres,
+    positive: to the right)."""
+    o_a, o_c = offsets.get("along_strike"), offsets.get("across_strike")
+    if o_a is None or o_c is None:
+        return None
+    vec = o_a["offset"] * fault.strike + o_c["offset"] * fault.normal  # (east, north) metres
+    size = float(np.hypot(*vec))
+    if size < 5 * res * 0.05:  # no step to locate (under 0.25 px)
+        return None
+    proj = (fields["dE"] * vec[0] + fields["dN"] * vec[1]) / size
+    left = np.isfinite(proj) & (distance < -half_width / 2) & (distance > -half_width)
+    if not left.any():
+        return None
+    u = (proj - np.median(proj[left])) / size
+    use = np.isfinite(u) & (np.abs(distance) < half_width)
+    d, v = distance[use], u[use]
+    cand = np.arange(-half_width / 2, half_width / 2, res / 10)
+    misfit = [np.abs(v - (d >= c)).sum() for c in cand]
+    d0 = float(cand[int(np.argmin(misfit))])
+    return {"offset_m": d0, "offset_px": d0 / res, "cells": int(use.sum())}
+
+
+def run_displace(recipe: DisplaceRecipe, out: Path, cluster=None, overwrite: bool = False, plan=None) -> dict:
+    """Two orthos -> the displacement products and metrics (module notes)."""
+    import xarray as xr
+
+    from tiledsm.cluster import compute_context, compute_with_progress
+    from tiledsm.compare.stable import exclusion_mask, read_polygons
+    from tiledsm.displace import correlate_orthos
+    from tiledsm.displace.correct import CorrectionParams, correct_component
+    from tiledsm.displace.grid import read_on_grid
+    from tiledsm.displace.uncertainty import Variogram, binned_sigma, fit_variogram
+    from tiledsm.io import open_product, withdraw, write_cog, write_zarr
+    from tiledsm.workflows.common import write_json
+    from tiledsm.workflows.displacement import fault_section
+    from tiledsm.workflows.fault import error_stats
+
+    cluster = cluster or recipe.cluster.config()
+    # `tiledsm run` plans recipes generically: the grid is derived here then (same checks, same messages)
+    grid = plan.product if plan is not None and plan.product is not None else displace_grid(recipe)[0]
+    warnings = list(plan.warnings) if plan is not None else []
+    spec = recipe.displacement
+    res = grid.resolution
+    params = spec.correlation(res)
+    withdraw(out, ["displacement.png", "profiles.png", "dE.tif", "dN.tif", "sigma_dE.tif", "sigma_dN.tif",
+                   "displacement.zarr"])
+    timings: dict = {}
+    log.info("grid: %s", grid.text())
+
+    # ---- both orthos on the grid (stores: each correlation task then reads its own window)
+    t0 = time.perf_counter()
+    stores = {}
+    with compute_context(cluster) as client:
+        for key in ("pre", "post"):
+            arr = read_on_grid(getattr(recipe.input, key), grid, recipe.grid.chunk)
+            t = grid.affine()
+            da_ = xr.DataArray(arr, dims=("y", "x"), name="ortho",
+                               coords={"y": t.f + (np.arange(grid.shape[0]) + 0.5) * t.e,
+                                       "x": t.c + (np.arange(grid.shape[1]) + 0.5) * t.a})
+            da_ = da_.rio.write_crs(grid.crs).rio.write_transform(t)
+            stores[key] = write_zarr(da_, out / key / "ortho.zarr",
+                                     compute=lambda d: compute_with_progress(d, config=cluster, client=client))
+    timings["orthos_s"] = time.perf_counter() - t0
+
+    # ---- the field
+    t0 = time.perf_counter()
+    field = correlate_orthos(stores["pre"], stores["post"], params, chunk=recipe.grid.chunk)
+    layers = ("dE", "dN", "quality", "texture", "peak", "formal_dE", "formal_dN")
+    with compute_context(cluster) as client:
+        (raw,) = compute_with_progress(xr.concat([field[v] for v in layers], "band").data, config=cluster,
+                                       client=client)
+    f = {n: np.asarray(raw[i], np.float64) for i, n in enumerate(layers)}
+    timings["correlation_s"] = time.perf_counter() - t0
+    x, y = field.x.values, field.y.values
+    transform, crs = field.rio.transform(), field.rio.crs
+    shape = f["dE"].shape
+    pre_px = np.asarray(open_product(stores["pre"]).values, np.float32)
+    post_px = np.asarray(open_product(stores["post"]).values, np.float32)
+    status = _status(f, pre_px, post_px, spec.step, spec.min_texture)
+
+    # ---- frame and sigma: on stable terrain when a mask says where it is
+    fields, corrections = {}, {}
+    if recipe.stable_mask:
+        stable = ~exclusion_mask(read_polygons(recipe.stable_mask, crs), transform, shape)
+        cp = CorrectionParams(plane=spec.plane, stripes=spec.stripes)
+        for n in ("dE", "dN"):
+            fields[n], corrections[n] = correct_component(f[n], x, y, stable, cp, n)
+        sigma_kind = "binned by the formal errors, calibrated on stable terrain"
+    else:
+        stable = np.ones(shape, bool)
+        fields = {"dE": f["dE"], "dN": f["dN"]}
+        sigma_kind = "formal error of the correlation (no stable terrain given: uncalibrated)"
+    sigmas, tables, varios = {}, {}, {}
+    for n in ("dE", "dN"):
+        if recipe.stable_mask:
+            sigmas[n], tables[n] = binned_sigma(fields[n], stable, {"formal": f[f"formal_{n}"]})
+        else:
+            sigmas[n], tables[n] = np.where(np.isfinite(fields[n]), f[f"formal_{n}"], np.nan), {}
+            # no stable terrain: no residual to fit a spatial correlation on; taken as uncorrelated (said in metrics)
+            varios[n] = Variogram(1.0, 0.0, spec.step * res)
+            continue
+        z = fields[n] / sigmas[n]
+        varios[n], _ = fit_variogram(z, x, y, stable & np.isfinite(z))
+
+    # ---- products
+    ds = xr.Dataset(
+        {**{n: (("y", "x"), fields[n].astype(np.float32)) for n in ("dE", "dN")},
+         **{f"sigma_{n}": (("y", "x"), sigmas[n].astype(np.float32)) for n in ("dE", "dN")},
+         "quality": (("y", "x"), f["quality"].astype(np.float32)), "peak": (("y", "x"), f["peak"].astype(np.float32)),
+         "status": (("y", "x"), status)},
+        coords={"y": y, "x": x},
+    ).rio.write_crs(crs).rio.write_transform(transform)
+    for n, long in (("dE", "east"), ("dN", "north")):
+        ds[n].attrs.update(units="m", long_name=f"{long} displacement (post - pre)")
+        ds[f"sigma_{n}"].attrs.update(units="m", long_name=f"standard error of {n} ({sigma_kind})")
+    ds["status"].attrs.update(long_name="why a cell is NaN", codes=str(STATUS))
+    ds.attrs.update({f"correlation_{k}": v for k, v in vars(params).items()})
+    write_zarr(ds.chunk({"y": 1024, "x": 1024}), out / "displacement.zarr")
+    stored = open_product(out / "displacement.zarr")
+    if recipe.output.cog:
+        for n in ("dE", "dN", "sigma_dE", "sigma_dN"):
+            write_cog(stored[n], out / f"{n}.tif")
+
+    valid = np.isfinite(fields["dE"])
+    metrics: dict = {
+        "grid": {"text": grid.text(), "crs": crs.to_string(), "transform": list(grid.transform),
+                 "shape": list(grid.shape), "resolution_m": res, "field_shape": list(shape),
+                 "field_cell_m": spec.step * res},
+        "correlation": {k: v for k, v in vars(params).items() if k != "batch"},
+        "reach_m": params.reach * res,
+        "resolution_limit_m": spec.window * res,
+        "valid_share": float(valid.mean()),
+        "status_share": {k: float((status == v).mean()) for k, v in STATUS.items()},
+        "frame": {"corrected": bool(recipe.stable_mask), "correction": corrections},
+        "sigma": sigma_kind,
+        "stable_cells": int((stable & valid).sum()),
+        "stable_noise": {n: {**error_stats(fields[n][stable & np.isfinite(fields[n])]),
+                             "nmad_px": float(error_stats(fields[n][stable & np.isfinite(fields[n])])["nmad"] / res)}
+                         for n in ("dE", "dN")} if recipe.stable_mask else None,
+        "uncertainty": {n: {"bins": tables[n], "variogram": varios[n].to_dict()} for n in ("dE", "dN")},
+        "warnings": warnings,
+    }
+    fault = None
+    if recipe.fault_trace is not None:
+        fault = fault_on_grid(recipe.fault_trace, grid.crs)
+        distance = fault.signed_distance(x, y)
+        sec = fault_section(fields, sigmas, varios, fault, distance, x, y, spec.window, spec.step, res)
+        sec["trace_location"] = locate_trace(fields, distance, sec["offsets"], fault, 3 * spec.window * res, res)
+        metrics["fault"] = {**fault.to_dict(), **sec}
+    if recipe.output.quicklook:
+        _figures(fields, ds, pre_px, fault, metrics, out)
+    metrics["timings"] = timings
+    metrics["products"] = sorted(p.name for p in out.iterdir() if p.name not in ("run.log", ".lock"))
+    write_json(metrics, out / "metrics.json")
+    return metrics
+
+
+def _figures(fields: dict, ds, pre_px: np.ndarray, fault, metrics: dict, out: Path) -> None:
+    from tiledsm.displace.figures import displacement_figure, profile_figure
+
+    t = ds.rio.transform()
+    ny, nx = fields["dE"].shape
+    extent = (t.c, t.c + nx * t.a, t.f + ny * t.e, t.f)
+    k = max(1, int(max(pre_px.shape) // 1024))
+    img = pre_px[::k, ::k]
+    lo, hi = np.nanpercentile(img, [1, 99]) if np.isfinite(img).any() else (0.0, 1.0)
+    shade = np.clip((np.nan_to_num(img, nan=lo) - lo) / max(hi - lo, 1e-9), 0, 1)
+    # the PRE pixels span the field's cells and the crop past the last whole cell
+    extent_img = (t.c, t.c + pre_px.shape[1] * t.a / _step(ds), t.f + pre_px.shape[0] * t.e / _step(ds), t.f)
+    line = None
+    if fault is not None:
+        L = 2 * max(extent[1] - extent[0], extent[3] - extent[2])
+        p, s = fault.point, fault.strike
+        line = (np.array([p[0] - L * s[0], p[0] + L * s[0]]), np.array([p[1] - L * s[1], p[1] + L * s[1]]))
+    displacement_figure(fields["dE"], fields["dN"], None, extent, out / "displacement.png", shade=shade,
+                        shade_extent=extent_img, title="horizontal displacement (post - pre) over PRE",
+                        fault_line=line)
+    if "fault" in metrics:
+        profile_figure(metrics["fault"]["profiles"], metrics["fault"]["offsets"], out / "profiles.png",
+                       title="across the fault trace")
+
+
+def _step(ds) -> int:
+    return int(ds.attrs["correlation_step"])
