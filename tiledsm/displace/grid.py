@@ -95,7 +95,7 @@ def ortho_header(path: str, name: str) -> dict:
             raise InputFileError(f"{path}: {name}: not a readable raster ({exc})") from None
     if crs is None or t.is_identity:
         raise GridError(f"{path}: {name}: not georeferenced (no CRS or geotransform): give an orthoimage "
-                        "(or an image with --dsm-pre/--dsm-post and its camera)")
+                        "(a raster with a projected CRS and a geotransform)")
     if t.b != 0 or t.d != 0 or t.a <= 0 or t.e >= 0:
         raise GridError(f"{path}: {name}: its grid is rotated or not north-up ({tuple(t)[:6]}); warp it north-up first")
     if crs.is_geographic:

@@ -242,8 +242,9 @@ def locate_trace(fields: dict, distance: np.ndarray, offsets: dict, fault, half_
     use = np.isfinite(u) & (np.abs(distance) < half_width)
     d, v = distance[use], u[use]
     cand = np.arange(-half_width / 2, half_width / 2, res / 10)
-    misfit = [np.abs(v - (d >= c)).sum() for c in cand]
-    d0 = float(cand[int(np.argmin(misfit))])
+    misfit = np.array([np.abs(v - (d >= c)).sum() for c in cand])
+    # every position between the same two cells fits as well: the middle of the best ones, not the first
+    d0 = float(np.mean(cand[misfit <= misfit.min() + 1e-9]))
     return {"offset_m": d0, "offset_px": d0 / res, "cells": int(use.sum())}
 
 
