@@ -115,7 +115,7 @@ def test_real_ortho_pair_on_one_grid(real):
     post = _post(real, "post_same.tif", Affine(RES, 0, X0, 0, -RES, Y0), (SIDE, SIDE), CRS)
     out, m = _run(real, post, "same")
     _check_real(out, m, real)
-    assert "PRE's own pixel lattice" in m["grid"]["text"]
+    assert "PRE's own pixel lattice; PRE and POST read as is" in m["grid"]["text"]
     for name in ("displacement.zarr", "dE.tif", "dN.tif", "sigma_dE.tif", "sigma_dN.tif", "displacement.png",
                  "profiles.png", "recipe.resolved.yaml", "run.log"):
         assert (out / name).exists(), name
@@ -132,6 +132,7 @@ def test_real_ortho_pair_post_on_another_grid(real):
     out, m = _run(real, post, "grid06")
     _check_real(out, m, real)
     assert m["grid"]["shape"] == [SIDE, SIDE] and m["grid"]["transform"][2] == X0
+    assert "PRE's own pixel lattice; PRE read as is, POST warped onto it (bicubic)" in m["grid"]["text"]
 
 
 @pytest.mark.realdata
@@ -284,3 +285,29 @@ def test_an_earlier_run_of_other_inputs_needs_overwrite(small, capsys):
     # nothing moved: every measured cell is zero within the noise-free resampling
     dE, _ = _read(out / "dE.tif")
     assert np.nanmax(np.abs(dE)) < 1e-3 and np.isfinite(dE).mean() > 0.5
+
+
+def test_the_displace_recipe_runs_with_tiledsm_run(small, tmp_path):
+    """``pipeline: displace`` through ``tiledsm run``: POST is PRE moved by (1.3, -2.2) px (Fourier shift), on a
+    grid of 0.6 m cells the recipe asks for (both warped)."""
+    import yaml
+    from shift_cases import fourier_shift
+
+    with rasterio.open(small["pre"]) as src:
+        img, t = src.read(1).astype(np.float64), src.transform
+    post = write_tif(tmp_path / "post.tif", fourier_shift(img, 1.3, -2.2), t, CRS)
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump({
+        "pipeline": "displace", "input": {"pre": small["pre"], "post": post},
+        "grid": {"resolution": 0.6}, "displacement": {"window": 16, "step": 4},
+        "cluster": {"scheduler": "threads", "workers": 1}, "output": {"quicklook": False}}))
+    out = tmp_path / "run"
+    assert main(["run", str(tmp_path / "r.yaml"), "--out", str(out), "--no-progress"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert "cells of 0.6 m" in m["grid"]["text"] and "input.pre and input.post warped onto it (bicubic)" in m["grid"]["text"]
+    dE, _ = _read(out / "dE.tif")
+    dN, _ = _read(out / "dN.tif")
+    inner = (slice(3, -3), slice(3, -3))
+    # the content moved 2.2 px of 0.5 m west and 1.3 px south: -1.1 m east, -0.65 m north
+    assert np.nanmedian(dE[inner]) == pytest.approx(-1.1, abs=0.01)
+    assert np.nanmedian(dN[inner]) == pytest.approx(-0.65, abs=0.01)
+    assert (out / "recipe.resolved.yaml").exists() and (out / "run.log").exists()

@@ -134,15 +134,18 @@ def displacement_grid(pre: dict, post: dict, *, like: dict | None = None, resolu
     NoOverlapError
         The footprints do not overlap by ``min_side`` cells.
     """
-    if like is not None:
-        base, source = like, "the lattice of --like; PRE and POST warped onto it (bicubic)"
-    else:
-        base, source = pre, "PRE's own pixel lattice (PRE read as is); POST warped onto it (bicubic)"
+    base = like if like is not None else pre
     a, _, x0, _, e, y0 = base["transform"]
+    source = "the lattice of --like" if like is not None else "PRE's own pixel lattice"
     if resolution is not None and like is None:
         a, e = float(resolution), -float(resolution)
-        source = f"PRE's CRS and origin, cells of {resolution:g} m; PRE and POST warped onto it (bicubic)"
+        source = f"PRE's CRS and origin, cells of {resolution:g} m"
     crs = base["crs"]
+    lattice = (a, 0.0, x0, 0.0, e, y0)
+    how = ["read as is" if same_lattice(crs, lattice, h["crs"], h["transform"]) else "warped onto it (bicubic)"
+           for h in (pre, post)]
+    source += (f"; {names[0]} and {names[1]} {how[0]}" if how[0] == how[1]
+               else f"; {names[0]} {how[0]}, {names[1]} {how[1]}")
     boxes = [_bounds_in(h, crs) for h in (pre, post, *([like] if like is not None else []))]
     left, bottom = max(b[0] for b in boxes), max(b[1] for b in boxes)
     right, top = min(b[2] for b in boxes), min(b[3] for b in boxes)
@@ -158,6 +161,20 @@ def displacement_grid(pre: dict, post: dict, *, like: dict | None = None, resolu
     return OrthoGrid(crs, t, (i1 - i0, j1 - j0), source)
 
 
+def same_lattice(crs_a, t_a, crs_b, t_b) -> bool:
+    """Whether grid b's pixels are grid a's (same CRS and cell size, an
+    origin a whole number of cells away): reading b onto a needs no
+    resampling."""
+    from rasterio.crs import CRS
+
+    if CRS.from_user_input(crs_a) != CRS.from_user_input(crs_b):
+        return False
+    col = (t_b[2] - t_a[2]) / t_a[0]
+    row = (t_b[5] - t_a[5]) / t_a[4]
+    return (math.isclose(t_a[0], t_b[0], rel_tol=1e-9) and math.isclose(t_a[4], t_b[4], rel_tol=1e-9)
+            and abs(col - round(col)) < 1e-6 and abs(row - round(row)) < 1e-6)
+
+
 def _fmt(b) -> str:
     return "(" + ", ".join(f"{v:.1f}" for v in b) + ")"
 
@@ -168,7 +185,6 @@ def _read_block(path: str, grid_crs: str, transform: tuple, shape: tuple[int, in
     lattice, else GDAL's bicubic warp; NaN outside the raster and at its
     nodata."""
     import rasterio
-    from rasterio.crs import CRS
     from rasterio.enums import Resampling
     from rasterio.warp import reproject
     from rasterio.windows import Window
@@ -176,14 +192,8 @@ def _read_block(path: str, grid_crs: str, transform: tuple, shape: tuple[int, in
     out = np.full(shape, np.nan, np.float32)
     with rasterio.open(path) as src:
         st = src.transform
-        same_crs = src.crs == CRS.from_user_input(grid_crs)
-        col = (transform[2] - st.c) / st.a
-        row = (transform[5] - st.f) / st.e
-        on_lattice = (same_crs and math.isclose(transform[0], st.a, rel_tol=1e-9)
-                      and math.isclose(transform[4], st.e, rel_tol=1e-9)
-                      and abs(col - round(col)) < 1e-6 and abs(row - round(row)) < 1e-6)
-        if on_lattice:
-            r0, c0 = int(round(row)), int(round(col))
+        if same_lattice(src.crs, tuple(st)[:6], grid_crs, transform):
+            r0, c0 = int(round((transform[5] - st.f) / st.e)), int(round((transform[2] - st.c) / st.a))
             a0, a1 = max(r0, 0), min(r0 + shape[0], src.height)
             b0, b1 = max(c0, 0), min(c0 + shape[1], src.width)
             if a1 > a0 and b1 > b0:
