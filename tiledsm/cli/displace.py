@@ -20,9 +20,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "metrics.json, recipe.resolved.yaml and run.log into --out. dE/dN: metres east/north that the ground moved "
         "from PRE to POST; NaN where unknown (status layer says why).",
     )
-    p.add_argument("pre", help="pre-event orthoimage (GeoTIFF/COG, or a tiledsm ortho .zarr)")
-    p.add_argument("post", help="post-event orthoimage (any projected CRS, cell size or origin)")
+    p.add_argument("pre", help="pre-event orthoimage (GeoTIFF/COG, or a tiledsm ortho .zarr); with --dsm-pre, an "
+                   "image with its camera")
+    p.add_argument("post", help="post-event orthoimage (any projected CRS, cell size or origin); with --dsm-post, an "
+                   "image with its camera")
     p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--dsm-pre", default=None, help="PRE is an image with its camera (RPC tags or sidecar): "
+                   "orthorectify it on this DSM first (GeoTIFF or a tiledsm dsm.zarr)")
+    p.add_argument("--dsm-post", default=None, help="POST is an image with its camera: orthorectify it on this DSM first")
+    p.add_argument("--kernel", default="cs", help="ortho interpolation kernel with --dsm-pre/--dsm-post: nn, bl, cr, "
+                   "cs (default)")
     p.add_argument("--window", type=int, default=32, help="correlation window side, pixels (even; default 32)")
     p.add_argument("--step", type=int, default=8, help="spacing of the displacement cells, pixels (even, <= window; "
                    "default 8)")
@@ -59,7 +66,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 #: recipe field paths of the options, for messages
 OPTION_OF_FIELD = {
-    "input.pre": "PRE", "input.post": "POST", "grid.like": "--like", "grid.resolution": "--resolution",
+    "input.pre": "PRE", "input.post": "POST", "input.dsm_pre": "--dsm-pre", "input.dsm_post": "--dsm-post",
+    "input.kernel": "--kernel", "grid.like": "--like", "grid.resolution": "--resolution",
     "grid.chunk": "--chunk", "stable_mask": "--stable-mask", "fault_trace": "--fault-trace",
     "displacement.window": "--window", "displacement.step": "--step", "displacement.search": "--search",
     "displacement.max_displacement": "--max-displacement", "displacement.refine_search": "--refine-search",
@@ -93,7 +101,8 @@ def displace_recipe(args: argparse.Namespace):
         return DisplaceRecipe.model_validate({
             "pipeline": "displace",
             "name": Path(args.out).name,
-            "input": {"pre": _absolute(args.pre), "post": _absolute(args.post)},
+            "input": {"pre": _absolute(args.pre), "post": _absolute(args.post), "dsm_pre": _absolute(args.dsm_pre),
+                      "dsm_post": _absolute(args.dsm_post), "kernel": args.kernel},
             "grid": {k: v for k, v in grid.items() if v is not None},
             "displacement": displacement,
             "stable_mask": _absolute(args.stable_mask),
@@ -117,7 +126,8 @@ def run(args: argparse.Namespace) -> int:
     # the correlation's kernels are numpy FFTs and nogil numba, reads are GDAL: threads of this process
     cluster = cluster_config(args)
     recipe = displace_recipe(args)
-    names = {f: o for f, o in OPTION_OF_FIELD.items() if f in ("input.pre", "input.post", "grid.like", "stable_mask",
+    names = {f: o for f, o in OPTION_OF_FIELD.items() if f in ("input.pre", "input.post", "input.dsm_pre",
+                                                               "input.dsm_post", "grid.like", "stable_mask",
                                                                "fault_trace")}
     plan = plan_displace(recipe, args.out, cluster, overwrite=args.overwrite, names=names)
     print_warnings("displace", plan.warnings)

@@ -2,14 +2,19 @@
 horizontal displacement field between two orthoimages of any grid.
 
 PRE and POST are orthoimages (GeoTIFF/COG or tiledsm ortho ``.zarr``
-stores) in any projected CRS, cell size or origin. The plan
+stores) in any projected CRS, cell size or origin, or images with their
+cameras and a DSM each (``dsm_pre``, ``dsm_post``), orthorectified first
+on their own epoch's DSM (:func:`tiledsm.ortho.stage.ortho_files`, as the
+deformation recipe does). The plan
 (:func:`plan_displace`) reads their headers, refuses what cannot work
 (missing, unreadable or non-georeferenced input, no common ground, bad
 options) and states the grid both are read onto
 (:func:`tiledsm.displace.grid.displacement_grid`: PRE's own lattice by
 default). The run writes into ``OUT``:
 
-- ``pre/ortho.zarr``, ``post/ortho.zarr``: both orthos on that grid;
+- ``pre/ortho.zarr``, ``post/ortho.zarr``: both orthos on that grid (and
+  ``pre/ortho_on_dsm.zarr``, ``post/ortho_on_dsm.zarr``: an image given
+  with a DSM, orthorectified on that DSM's grid);
 - ``displacement.zarr``: ``dE``, ``dN`` (metres east/north, post minus
   pre; NaN where unknown), ``sigma_dE``, ``sigma_dN`` (metres),
   ``quality`` (phase coherence), ``peak`` (phase-correlation peak),
@@ -56,8 +61,14 @@ STATUS = {"measured": 0, "no_data": 1, "no_texture": 2, "decorrelated": 3}
 
 
 class DisplaceInput(StrictModel):
-    pre: str = Field(..., description="pre-event orthoimage: GeoTIFF/COG or tiledsm ortho .zarr, projected CRS")
-    post: str = Field(..., description="post-event orthoimage: any projected CRS, cell size or origin")
+    pre: str = Field(..., description="pre-event orthoimage: GeoTIFF/COG or tiledsm ortho .zarr, projected CRS; or, "
+                     "with dsm_pre, an image with its camera (RPC tags or sidecar)")
+    post: str = Field(..., description="post-event orthoimage: any projected CRS, cell size or origin; or, with "
+                      "dsm_post, an image with its camera")
+    dsm_pre: Optional[str] = Field(None, description="DSM of the pre epoch: pre is orthorectified on it first "
+                                   "(tiledsm.ortho, occlusion-aware)")
+    dsm_post: Optional[str] = Field(None, description="DSM of the post epoch: post is orthorectified on it first")
+    kernel: str = Field("cs", description="ortho interpolation kernel of images given with a DSM: nn, bl, cr, cs")
 
 
 class DisplaceGrid(StrictModel):
@@ -87,20 +98,52 @@ class DisplaceRecipe(StrictModel):
 # --------------------------------------------------------------------------- plan
 #: how messages name the recipe's fields (the command passes its options instead)
 FIELD_NAMES = {"input.pre": "input.pre", "input.post": "input.post", "grid.like": "grid.like",
-               "stable_mask": "stable_mask", "fault_trace": "fault_trace"}
+               "stable_mask": "stable_mask", "fault_trace": "fault_trace", "input.dsm_pre": "input.dsm_pre",
+               "input.dsm_post": "input.dsm_post"}
+
+
+def _lazy_ortho(recipe: DisplaceRecipe, key: str, names: dict):
+    """The lazy ortho of ``input.<key>`` on ``input.dsm_<key>`` (None without a DSM)."""
+    from tiledsm.ortho.stage import ortho_files
+    from tiledsm.plan.core import existing_file, readable_raster
+
+    dsm = getattr(recipe.input, f"dsm_{key}")
+    if dsm is None:
+        return None
+    image = readable_raster(existing_file(getattr(recipe.input, key), names[f"input.{key}"]), names[f"input.{key}"])
+    dsm = existing_file(dsm, names[f"input.dsm_{key}"])
+    if not dsm.endswith(".zarr"):
+        readable_raster(dsm, names[f"input.dsm_{key}"])
+    return ortho_files(image, dsm, kernel=recipe.input.kernel, chunk=min(recipe.grid.chunk, 512)).rename("ortho")
+
+
+def _header_of(ortho) -> dict:
+    t, shape = ortho.rio.transform(), ortho.rio.shape
+    return {"crs": ortho.rio.crs.to_wkt(), "crs_name": ortho.rio.crs.to_string(), "transform": tuple(t)[:6],
+            "shape": tuple(shape), "bounds": (t.c, t.f + shape[0] * t.e, t.c + shape[1] * t.a, t.f),
+            "res": (t.a, -t.e)}
 
 
 def displace_grid(recipe: DisplaceRecipe, names: dict | None = None):
-    """The grid of a displace run and its inputs' descriptions (for the
-    plan): PRE and POST (and ``grid.like``) exist, read, are georeferenced
-    and overlap by a window."""
+    """The grid of a displace run, its inputs' descriptions (for the plan)
+    and the lazy orthos of the images given with a DSM: PRE and POST (and
+    ``grid.like``) exist, read, are georeferenced (or have a camera and a
+    DSM) and overlap by a window."""
     from tiledsm.displace.grid import displacement_grid, ortho_header
     from tiledsm.plan.core import InputInfo, existing_file, readable_raster
 
     names = {**FIELD_NAMES, **(names or {})}
-    heads, infos = {}, []
+    heads, infos, orthos = {}, [], {}
     for key in ("pre", "post"):
         role = names[f"input.{key}"]
+        orthos[key] = ortho = _lazy_ortho(recipe, key, names)
+        if ortho is not None:
+            heads[key] = h = _header_of(ortho)
+            infos.append(InputInfo(role, str(Path(getattr(recipe.input, key)).resolve()),
+                                   f"image, orthorectified on {names[f'input.dsm_{key}']} "
+                                   f"{getattr(recipe.input, f'dsm_{key}')}: {h['shape'][0]} x {h['shape'][1]} cells "
+                                   f"of {h['res'][0]:g} m, {h['crs_name']} (kernel {recipe.input.kernel})"))
+            continue
         path = existing_file(getattr(recipe.input, key), role)
         if not Path(path).is_dir():
             readable_raster(path, role)
@@ -114,7 +157,7 @@ def displace_grid(recipe: DisplaceRecipe, names: dict | None = None):
         infos.append(InputInfo(names["grid.like"], lp, f"{like['shape'][0]} x {like['shape'][1]} cells"))
     grid = displacement_grid(heads["pre"], heads["post"], like=like, resolution=recipe.grid.resolution,
                              names=(names["input.pre"], names["input.post"]), min_side=recipe.displacement.window)
-    return grid, infos
+    return grid, infos, orthos
 
 
 def plan_displace(recipe: DisplaceRecipe, out, cluster=None, *, overwrite: bool = False, names=None):
@@ -132,7 +175,7 @@ def plan_displace(recipe: DisplaceRecipe, out, cluster=None, *, overwrite: bool 
 
     names = {**FIELD_NAMES, **(names or {})}
     plan = new_plan("displace", out, cluster)
-    grid, infos = displace_grid(recipe, names)
+    grid, infos, orthos = displace_grid(recipe, names)
     plan.inputs.extend(infos)
     spec = recipe.displacement
     params = spec.correlation(grid.resolution)
@@ -166,7 +209,7 @@ def plan_displace(recipe: DisplaceRecipe, out, cluster=None, *, overwrite: bool 
         fault_on_grid(recipe.fault_trace, grid.crs, names["fault_trace"])
     plan.reuse = "nothing: the field is recomputed whole"
     _check_earlier_run(recipe, plan.out, overwrite)
-    plan.product = grid
+    plan.product = (grid, orthos)
     return plan
 
 
@@ -265,7 +308,7 @@ def run_displace(recipe: DisplaceRecipe, out: Path, cluster=None, overwrite: boo
 
     cluster = cluster or recipe.cluster.config()
     # `tiledsm run` plans recipes generically: the grid is derived here then (same checks, same messages)
-    grid = plan.product if plan is not None and plan.product is not None else displace_grid(recipe)[0]
+    grid, orthos = (plan.product if plan is not None and plan.product is not None else displace_grid(recipe)[::2])
     warnings = list(plan.warnings) if plan is not None else []
     spec = recipe.displacement
     res = grid.resolution
@@ -280,7 +323,13 @@ def run_displace(recipe: DisplaceRecipe, out: Path, cluster=None, overwrite: boo
     stores = {}
     with compute_context(cluster) as client:
         for key in ("pre", "post"):
-            arr = read_on_grid(getattr(recipe.input, key), grid, recipe.grid.chunk)
+            source = getattr(recipe.input, key)
+            if orthos[key] is not None:  # an image with a DSM: its ortho first, on the DSM's grid
+                source = write_zarr(orthos[key], out / key / "ortho_on_dsm.zarr",
+                                    compute=lambda d: compute_with_progress(d, config=cluster, client=client))
+                log.info("%s ortho of %s on %s: %s", key, getattr(recipe.input, key),
+                         getattr(recipe.input, f"dsm_{key}"), source)
+            arr = read_on_grid(str(source), grid, recipe.grid.chunk)
             t = grid.affine()
             da_ = xr.DataArray(arr, dims=("y", "x"), name="ortho",
                                coords={"y": t.f + (np.arange(grid.shape[0]) + 0.5) * t.e,
