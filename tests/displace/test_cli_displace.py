@@ -316,24 +316,29 @@ def test_the_displace_recipe_runs_with_tiledsm_run(small, tmp_path):
 @pytest.mark.slow
 def test_images_with_a_dsm_each_are_orthorectified_first(tmp_path):
     """--dsm-pre/--dsm-post: the synthetic event's first view of each epoch (RPC tags) on that epoch's truth
-    DSM; the right block slipped 6 m (12 px) along the strike. Measured (256 px scene): right block median
-    (3.4424, 4.9159) m against the truth (3.4415, 4.9149), the left block 0.0001 m."""
+    DSM; the right block slipped 6 m (12 px) along the strike, rose by the 2 m throw and carries the uplift.
+    Measured: right block dE off by 0.0009 m; dU - truth dz median -0.00002 m, MAD 0.0004 m."""
     from tiledsm.synth import make_scene
-    from tiledsm.synth.event import EventParams
+    from tiledsm.synth.event import EventParams, displacement
+    from tiledsm.workflows.fault import event_exclusion_polygons, write_geojson
 
     n = 192
     s = make_scene(tmp_path / "scene", size=n, gsd=RES, bh=0.4, seed=3, views=2, event=True,
                    event_params=EventParams.for_extent(n * RES, still="left", slip=6.0))
     ev = s.event["params"]
+    feats, _ = event_exclusion_polygons(ev, s.origin, n * RES)
+    mask = write_geojson(feats, s.grid.crs, tmp_path / "stable.geojson")
     out = tmp_path / "out"
     assert main(["displace", str(s.views[0]), str(s.event["post_views"][0]), "--dsm-pre", str(s.truth_dsm),
                  "--dsm-post", str(tmp_path / "scene" / "post_truth_dsm.tif"), "--max-displacement", "8",
-                 "--out", str(out), "--no-progress", "--no-quicklook"]) == 0
+                 "--stable-mask", str(mask), "--out", str(out), "--no-progress", "--no-quicklook"]) == 0
     m = json.loads((out / "metrics.json").read_text())
     assert m["correlation"]["levels"] == 1  # 8 m = 16 px: one coarse level (x2) with the 8 px search
     assert (out / "pre" / "ortho_on_dsm.zarr").exists() and (out / "post" / "ortho_on_dsm.zarr").exists()
     dE, t = _read(out / "dE.tif")
     dN, _ = _read(out / "dN.tif")
+    dU, _ = _read(out / "dU.tif")
+    assert (out / "sigma_dU.tif").exists()
     X, Y = _cell_centres(t, dE.shape)
     p = np.asarray(ev.fault_point) + np.asarray(s.origin)
     d = (X - p[0]) * ev.normal[0] + (Y - p[1]) * ev.normal[1]
@@ -342,3 +347,8 @@ def test_images_with_a_dsm_each_are_orthorectified_first(tmp_path):
     assert np.nanmedian(dE[right]) == pytest.approx(6.0 * ev.strike[0], abs=0.01)
     assert np.nanmedian(dN[right]) == pytest.approx(6.0 * ev.strike[1], abs=0.01)
     assert abs(np.nanmedian(dE[left])) < 0.01 and abs(np.nanmedian(dN[left])) < 0.01
+    # the truth dz at the cell centres (local metres of the scene)
+    _, _, _, dz = displacement(ev, X[0] - s.origin[0], Y[:, 0] - s.origin[1])
+    err = (dU - dz)[(right | left) & np.isfinite(dU)]
+    assert err.size > 0.5 * (right | left).sum()
+    assert abs(np.median(err)) < 0.05 and np.median(np.abs(err - np.median(err))) < 0.05

@@ -21,8 +21,14 @@ default). The run writes into ``OUT``:
   ``status`` (uint8: 0 measured, 1 no data, 2 no texture, 3 decorrelated:
   a changed surface, cloud or moved shadow -- the correlation's quality,
   peak or residual refused it; never interpolated);
-- ``dE.tif``, ``dN.tif``, ``sigma_dE.tif``, ``sigma_dN.tif`` (COGs),
-  ``displacement.png`` (arrows over PRE) and, with a fault trace,
+- with both ``dsm_pre`` and ``dsm_post``: ``dU`` (metres up, the post DSM
+  read at the displaced position minus the pre DSM,
+  :mod:`tiledsm.displace.vertical`; with a stable mask its plane on
+  stable terrain removed), ``sigma_dU`` (binned by slope and quality, plus
+  the horizontal error along the slope) and ``slope``;
+- ``dE.tif``, ``dN.tif``, ``sigma_dE.tif``, ``sigma_dN.tif`` (and
+  ``dU.tif``, ``sigma_dU.tif``) (COGs), ``displacement.png`` (arrows over
+  PRE, and dU or the displacement's length) and, with a fault trace,
   ``profiles.png``;
 - ``metrics.json``, ``recipe.resolved.yaml``, ``run.log``.
 
@@ -56,6 +62,8 @@ __all__ = ["DisplaceRecipe", "plan_displace", "run_displace"]
 
 log = logging.getLogger("tiledsm.workflows.displace")
 
+#: the components measured: dU only when both epochs have a DSM
+COMPONENTS = ("dE", "dN", "dU")
 #: status codes of the ``status`` layer
 STATUS = {"measured": 0, "no_data": 1, "no_texture": 2, "decorrelated": 3}
 
@@ -313,7 +321,7 @@ def run_displace(recipe: DisplaceRecipe, out: Path, cluster=None, overwrite: boo
     spec = recipe.displacement
     res = grid.resolution
     params = spec.correlation(res)
-    withdraw(out, ["displacement.png", "profiles.png", "dE.tif", "dN.tif", "sigma_dE.tif", "sigma_dN.tif",
+    withdraw(out, ["displacement.png", "profiles.png", *[f"{p}{c}.tif" for p in ("", "sigma_") for c in COMPONENTS],
                    "displacement.zarr"])
     timings: dict = {}
     log.info("grid: %s", grid.text())
@@ -367,27 +375,45 @@ def run_displace(recipe: DisplaceRecipe, out: Path, cluster=None, overwrite: boo
         stable = np.ones(shape, bool)
         fields = {"dE": f["dE"], "dN": f["dN"]}
         sigma_kind = "formal error of the correlation (no stable terrain given: uncalibrated)"
-    sigmas, tables, varios = {}, {}, {}
-    for n in ("dE", "dN"):
-        if recipe.stable_mask:
-            sigmas[n], tables[n] = binned_sigma(fields[n], stable, {"formal": f[f"formal_{n}"]})
+    # ---- vertical: both epochs' DSMs given, dU read at the displaced position (as the deformation recipe does)
+    slope = None
+    if recipe.input.dsm_pre and recipe.input.dsm_post:
+        t0 = time.perf_counter()
+        du, slope = _vertical(recipe, grid, fields, spec, res, cluster)
+        if recipe.stable_mask:  # the epochs' DSMs' vertical offset and tilt, fitted on stable terrain
+            fields["dU"], corrections["dU"] = correct_component(du, x, y, stable, cp, "dU")
         else:
-            sigmas[n], tables[n] = np.where(np.isfinite(fields[n]), f[f"formal_{n}"], np.nan), {}
-            # no stable terrain: no residual to fit a spatial correlation on; taken as uncorrelated (said in metrics)
+            fields["dU"] = du
+        timings["vertical_s"] = time.perf_counter() - t0
+    names = list(fields)
+    sigmas, tables, varios = {}, {}, {}
+    for n in names:
+        if not recipe.stable_mask:
+            # no stable terrain: the correlation's formal error (dU: none, NaN); no residual to fit a spatial
+            # correlation on, taken as uncorrelated (metrics say both)
+            formal = f.get(f"formal_{n}", np.full(shape, np.nan))
+            sigmas[n], tables[n] = np.where(np.isfinite(fields[n]), formal, np.nan), {}
             varios[n] = Variogram(1.0, 0.0, spec.step * res)
             continue
+        preds = {"formal": f[f"formal_{n}"]} if n != "dU" else {"slope": slope, "quality": f["quality"]}
+        sigmas[n], tables[n] = binned_sigma(fields[n], stable, preds)
+        if n == "dU":  # dU is read at p + d: the horizontal error moves the reading along the slope
+            sigmas[n] = np.hypot(sigmas[n], np.tan(np.radians(slope)) * np.hypot(sigmas["dE"], sigmas["dN"]))
         z = fields[n] / sigmas[n]
         varios[n], _ = fit_variogram(z, x, y, stable & np.isfinite(z))
 
     # ---- products
     ds = xr.Dataset(
-        {**{n: (("y", "x"), fields[n].astype(np.float32)) for n in ("dE", "dN")},
-         **{f"sigma_{n}": (("y", "x"), sigmas[n].astype(np.float32)) for n in ("dE", "dN")},
+        {**{n: (("y", "x"), fields[n].astype(np.float32)) for n in names},
+         **{f"sigma_{n}": (("y", "x"), sigmas[n].astype(np.float32)) for n in names},
          "quality": (("y", "x"), f["quality"].astype(np.float32)), "peak": (("y", "x"), f["peak"].astype(np.float32)),
          "status": (("y", "x"), status)},
         coords={"y": y, "x": x},
     ).rio.write_crs(crs).rio.write_transform(transform)
-    for n, long in (("dE", "east"), ("dN", "north")):
+    if slope is not None:
+        ds["slope"] = (("y", "x"), slope.astype(np.float32))
+        ds["slope"].attrs.update(units="degree", long_name="median slope of the pre DSM in the cell")
+    for n, long in (("dE", "east"), ("dN", "north"), ("dU", "up"))[:len(names)]:
         ds[n].attrs.update(units="m", long_name=f"{long} displacement (post - pre)")
         ds[f"sigma_{n}"].attrs.update(units="m", long_name=f"standard error of {n} ({sigma_kind})")
     ds["status"].attrs.update(long_name="why a cell is NaN", codes=str(STATUS))
@@ -395,7 +421,7 @@ def run_displace(recipe: DisplaceRecipe, out: Path, cluster=None, overwrite: boo
     write_zarr(ds.chunk({"y": 1024, "x": 1024}), out / "displacement.zarr")
     stored = open_product(out / "displacement.zarr")
     if recipe.output.cog:
-        for n in ("dE", "dN", "sigma_dE", "sigma_dN"):
+        for n in (*names, *[f"sigma_{c}" for c in names]):
             write_cog(stored[n], out / f"{n}.tif")
 
     valid = np.isfinite(fields["dE"])
@@ -413,8 +439,8 @@ def run_displace(recipe: DisplaceRecipe, out: Path, cluster=None, overwrite: boo
         "stable_cells": int((stable & valid).sum()),
         "stable_noise": {n: {**error_stats(fields[n][stable & np.isfinite(fields[n])]),
                              "nmad_px": float(error_stats(fields[n][stable & np.isfinite(fields[n])])["nmad"] / res)}
-                         for n in ("dE", "dN")} if recipe.stable_mask else None,
-        "uncertainty": {n: {"bins": tables[n], "variogram": varios[n].to_dict()} for n in ("dE", "dN")},
+                         for n in names} if recipe.stable_mask else None,
+        "uncertainty": {n: {"bins": tables[n], "variogram": varios[n].to_dict()} for n in names},
         "warnings": warnings,
     }
     fault = None
@@ -449,12 +475,31 @@ def _figures(fields: dict, ds, pre_px: np.ndarray, fault, metrics: dict, out: Pa
         L = 2 * max(extent[1] - extent[0], extent[3] - extent[2])
         p, s = fault.point, fault.strike
         line = (np.array([p[0] - L * s[0], p[0] + L * s[0]]), np.array([p[1] - L * s[1], p[1] + L * s[1]]))
-    displacement_figure(fields["dE"], fields["dN"], None, extent, out / "displacement.png", shade=shade,
+    displacement_figure(fields["dE"], fields["dN"], fields.get("dU"), extent, out / "displacement.png", shade=shade,
                         shade_extent=extent_img, title="horizontal displacement (post - pre) over PRE",
                         fault_line=line)
     if "fault" in metrics:
         profile_figure(metrics["fault"]["profiles"], metrics["fault"]["offsets"], out / "profiles.png",
                        title="across the fault trace")
+
+
+def _vertical(recipe, grid, fields: dict, spec, res: float, cluster):
+    """``(dU, slope)`` on the field grid: both DSMs read onto the grid, the
+    post one at each cell's ``p + d`` (:func:`tiledsm.displace.vertical.vertical_displacement`)."""
+    import dask.array as da
+
+    from tiledsm.cluster import compute_context, compute_with_progress
+    from tiledsm.displace.grid import read_on_grid
+    from tiledsm.displace.vertical import vertical_displacement
+
+    pre_h, post_h = (read_on_grid(p, grid, recipe.grid.chunk) for p in (recipe.input.dsm_pre, recipe.input.dsm_post))
+    fchunk = max(1, recipe.grid.chunk // spec.step)
+    dE, dN = (da.from_array(np.nan_to_num(fields[n], nan=0.0), chunks=fchunk) for n in ("dE", "dN"))
+    vd = vertical_displacement(pre_h, post_h, dE, dN, step=spec.step, res=res)
+    with compute_context(cluster) as client:
+        (vert,) = compute_with_progress(vd, config=cluster, client=client)
+    du = np.where(np.isfinite(fields["dE"]) & np.isfinite(fields["dN"]), vert[0], np.nan).astype(np.float64)
+    return du, np.asarray(vert[1], np.float64)
 
 
 def _step(ds) -> int:
