@@ -352,3 +352,33 @@ def test_images_with_a_dsm_each_are_orthorectified_first(tmp_path):
     err = (dU - dz)[(right | left) & np.isfinite(dU)]
     assert err.size > 0.5 * (right | left).sum()
     assert abs(np.median(err)) < 0.05 and np.median(np.abs(err - np.median(err))) < 0.05
+
+
+def test_decorrelated_and_missing_ground_is_flagged_not_filled(tmp_path):
+    """A changed surface (a 64 px patch of POST replaced by another texture, as a new building, a cloud or a
+    moved shadow) and a nodata patch: their cells are NaN with status 3 (decorrelated) and 1 (no data), never
+    interpolated; the untouched ground is measured (status 0)."""
+    from scipy import ndimage
+    from shift_cases import fourier_shift
+
+    rng = np.random.default_rng(4)
+    img = ndimage.gaussian_filter(rng.normal(size=(256, 256)), 1.5) * 200 + 100
+    post = fourier_shift(img, 0.4, -0.3)
+    post[32:96, 32:96] = ndimage.gaussian_filter(rng.normal(size=(64, 64)), 1.5) * 200 + 100  # changed
+    post[160:224, 160:224] = np.nan  # no data
+    t = Affine(RES, 0, X0, 0, -RES, Y0)
+    out = tmp_path / "out"
+    assert main(["displace", write_tif(tmp_path / "pre.tif", img, t, CRS), write_tif(tmp_path / "post.tif", post, t, CRS),
+                 "--out", str(out), "--no-progress", "--no-quicklook"]) == 0
+    import xarray as xr
+
+    ds = xr.open_zarr(out / "displacement.zarr", consolidated=False)
+    st, dE = ds["status"].values, ds["dE"].values
+    changed, gone = (slice(6, 10), slice(6, 10)), (slice(22, 26), slice(22, 26))  # cells well inside the patches
+    assert (st[changed] == 3).all() and np.isnan(dE[changed]).all()
+    assert (st[gone] == 1).all() and np.isnan(dE[gone]).all()
+    clear = np.zeros(st.shape, bool)
+    clear[14:18, 2:30] = True  # a band of untouched ground between the patches
+    assert (st[clear] == 0).all() and np.nanmax(np.abs(dE[clear] + 0.3 * RES)) < 0.01
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["status_share"]["decorrelated"] > 0.04 and m["status_share"]["no_data"] > 0.04
