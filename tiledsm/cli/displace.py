@@ -76,16 +76,12 @@ OPTION_OF_FIELD = {
 }
 
 
-def _absolute(path: str | None) -> str | None:
-    return None if path is None else str(Path(path).expanduser().resolve())
-
-
 def displace_recipe(args: argparse.Namespace):
     """The ``pipeline: displace`` recipe of the command's options, every
     path absolute; a bad value is an :class:`~tiledsm.errors.InvalidOptionError`
     naming the option."""
-    from pydantic import ValidationError
-
+    from tiledsm.cli.dsm import _absolute
+    from tiledsm.cli.run import recipe_of_options
     from tiledsm.errors import InvalidOptionError
     from tiledsm.workflows.displace import DisplaceRecipe
 
@@ -97,23 +93,17 @@ def displace_recipe(args: argparse.Namespace):
                     "min_quality": args.min_quality, "min_peak": args.min_peak, "min_texture": args.min_texture,
                     "plane": not args.no_plane, "stripes": "rows" if args.stripes else None}
     grid = {"like": _absolute(args.like), "resolution": args.resolution, "chunk": args.chunk}
-    try:
-        return DisplaceRecipe.model_validate({
-            "pipeline": "displace",
-            "name": Path(args.out).name,
-            "input": {"pre": _absolute(args.pre), "post": _absolute(args.post), "dsm_pre": _absolute(args.dsm_pre),
-                      "dsm_post": _absolute(args.dsm_post), "kernel": args.kernel},
-            "grid": {k: v for k, v in grid.items() if v is not None},
-            "displacement": displacement,
-            "stable_mask": _absolute(args.stable_mask),
-            "fault_trace": None if ft is None else [(ft[0], ft[1]), (ft[2], ft[3])],
-            "output": {"cog": not args.no_cog, "quicklook": not args.no_quicklook},
-        })
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        loc = ".".join(str(p) for p in err["loc"])
-        option = next((o for f, o in OPTION_OF_FIELD.items() if loc == f or loc.startswith(f + ".")), loc)
-        raise InvalidOptionError(f"{option}: {err['msg'].removeprefix('Value error, ')}") from None
+    return recipe_of_options(DisplaceRecipe, {
+        "pipeline": "displace",
+        "name": Path(args.out).name,
+        "input": {"pre": _absolute(args.pre), "post": _absolute(args.post), "dsm_pre": _absolute(args.dsm_pre),
+                  "dsm_post": _absolute(args.dsm_post), "kernel": args.kernel},
+        "grid": {k: v for k, v in grid.items() if v is not None},
+        "displacement": displacement,
+        "stable_mask": _absolute(args.stable_mask),
+        "fault_trace": None if ft is None else [(ft[0], ft[1]), (ft[2], ft[3])],
+        "output": {"cog": not args.no_cog, "quicklook": not args.no_quicklook},
+    }, OPTION_OF_FIELD)
 
 
 def run(args: argparse.Namespace) -> int:
