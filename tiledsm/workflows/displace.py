@@ -64,9 +64,6 @@ log = logging.getLogger("tiledsm.workflows.displace")
 
 #: the components measured: dU only when both epochs have a DSM
 COMPONENTS = ("dE", "dN", "dU")
-#: status codes of the ``status`` layer
-STATUS = {"measured": 0, "no_data": 1, "no_texture": 2, "decorrelated": 3}
-
 
 class DisplaceInput(StrictModel):
     pre: str = Field(..., description="pre-event orthoimage: GeoTIFF/COG or tiledsm ortho .zarr, projected CRS; or, "
@@ -257,48 +254,6 @@ def fault_on_grid(trace, crs: str, name: str = "fault_trace"):
 
 
 # --------------------------------------------------------------------------- run
-def _status(field, pre: np.ndarray, post: np.ndarray, step: int, min_texture: float) -> np.ndarray:
-    """Why each cell is NaN (:data:`STATUS`): no data where a tenth of its
-    ``step x step`` pixels lack PRE or POST, no texture where the PRE
-    window's std is under ``min_texture``, decorrelated otherwise."""
-    ny, nx = field["dE"].shape
-    gone = (~np.isfinite(pre[: ny * step, : nx * step]) | ~np.isfinite(post[: ny * step, : nx * step]))
-    share = gone.reshape(ny, step, nx, step).mean(axis=(1, 3))
-    st = np.full((ny, nx), STATUS["decorrelated"], np.uint8)
-    st[np.asarray(field["texture"]) < min_texture] = STATUS["no_texture"]
-    st[share > 0.1] = STATUS["no_data"]
-    st[np.isfinite(field["dE"]) & np.isfinite(field["dN"])] = STATUS["measured"]
-    return st
-
-
-def locate_trace(fields: dict, distance: np.ndarray, offsets: dict, fault, half_width: float, res: float) -> dict | None:
-    """Where the step of the field lies across the trace: the signed
-    distance ``d0`` whose step function best fits (least absolute misfit)
-    the displacement projected on the offset's direction and scaled 0 (left
-    block) .. 1 (right block), over cells within ``half_width`` metres.
-    ``d0`` is the located trace's offset from the given one (metres,
-    positive: to the right)."""
-    o_a, o_c = offsets.get("along_strike"), offsets.get("across_strike")
-    if o_a is None or o_c is None:
-        return None
-    vec = o_a["offset"] * fault.strike + o_c["offset"] * fault.normal  # (east, north) metres
-    size = float(np.hypot(*vec))
-    if size < 5 * res * 0.05:  # no step to locate (under 0.25 px)
-        return None
-    proj = (fields["dE"] * vec[0] + fields["dN"] * vec[1]) / size
-    left = np.isfinite(proj) & (distance < -half_width / 2) & (distance > -half_width)
-    if not left.any():
-        return None
-    u = (proj - np.median(proj[left])) / size
-    use = np.isfinite(u) & (np.abs(distance) < half_width)
-    d, v = distance[use], u[use]
-    cand = np.arange(-half_width / 2, half_width / 2, res / 10)
-    misfit = np.array([np.abs(v - (d >= c)).sum() for c in cand])
-    # every position between the same two cells fits as well: the middle of the best ones, not the first
-    d0 = float(np.mean(cand[misfit <= misfit.min() + 1e-9]))
-    return {"offset_m": d0, "offset_px": d0 / res, "cells": int(use.sum())}
-
-
 def run_displace(recipe: DisplaceRecipe, out: Path, cluster=None, overwrite: bool = False, plan=None) -> dict:
     """Two orthos -> the displacement products and metrics (module notes)."""
     import xarray as xr
@@ -308,6 +263,8 @@ def run_displace(recipe: DisplaceRecipe, out: Path, cluster=None, overwrite: boo
     from tiledsm.displace import correlate_orthos
     from tiledsm.displace.correct import CorrectionParams, correct_component
     from tiledsm.displace.grid import read_on_grid
+    from tiledsm.displace.masks import STATUS, cell_status
+    from tiledsm.displace.trace import locate_trace
     from tiledsm.displace.uncertainty import Variogram, binned_sigma, fit_variogram
     from tiledsm.io import open_product, withdraw, write_cog, write_zarr
     from tiledsm.workflows.common import write_json
@@ -361,7 +318,7 @@ def run_displace(recipe: DisplaceRecipe, out: Path, cluster=None, overwrite: boo
     shape = f["dE"].shape
     pre_px = np.asarray(open_product(stores["pre"]).values, np.float32)
     post_px = np.asarray(open_product(stores["post"]).values, np.float32)
-    status = _status(f, pre_px, post_px, spec.step, spec.min_texture)
+    status = cell_status(f, pre_px, post_px, spec.step, spec.min_texture)
 
     # ---- frame and sigma: on stable terrain when a mask says where it is
     fields, corrections = {}, {}
