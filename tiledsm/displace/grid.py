@@ -216,6 +216,16 @@ def _zarr_on_grid(path: str, grid: OrthoGrid):
     from tiledsm.io import open_raster_product
 
     a = open_raster_product(path).astype(np.float32)
+    t_a = tuple(a.rio.transform())[:6]
+    if same_lattice(a.rio.crs, t_a, grid.crs, grid.transform):
+        r0 = int(round((grid.transform[5] - t_a[5]) / t_a[4]))
+        c0 = int(round((grid.transform[2] - t_a[2]) / t_a[0]))
+        out = np.full(grid.shape, np.nan, np.float32)
+        a0, a1 = max(r0, 0), min(r0 + grid.shape[0], a.shape[0])
+        b0, b1 = max(c0, 0), min(c0 + grid.shape[1], a.shape[1])
+        if a1 > a0 and b1 > b0:
+            out[a0 - r0:a1 - r0, b0 - c0:b1 - c0] = np.asarray(a.data[a0:a1, b0:b1])
+        return out
     like = xr.DataArray(np.zeros(grid.shape, np.float32), dims=("y", "x")).rio.write_crs(grid.crs)
     like = like.rio.write_transform(grid.affine())
     t = grid.affine()
