@@ -29,6 +29,7 @@ from tiledsm.errors import RecipeError
 from tiledsm.recipes import dump_resolved, format_errors, read_recipe
 from tiledsm.workflows.common import setup_log, withdraw_products
 from tiledsm.workflows.deformation import DeformationRecipe, run_deformation
+from tiledsm.workflows.displace import DisplaceRecipe, run_displace
 from tiledsm.workflows.dsm import DSMRecipe, run_dsm
 from tiledsm.workflows.ortho_sr import OrthoSRRecipe, run_ortho_sr
 from tiledsm.workflows.sr_dsm import SRDSMRecipe, run_sr_dsm
@@ -54,6 +55,7 @@ PIPELINES: dict[str, Pipeline] = {
     "deformation": Pipeline(DeformationRecipe, run_deformation),
     "ortho_sr": Pipeline(OrthoSRRecipe, run_ortho_sr),
     "train_sr": Pipeline(TrainSRRecipe, run_train_sr),
+    "displace": Pipeline(DisplaceRecipe, run_displace),
 }
 
 

@@ -26,6 +26,7 @@ COMMAND_MODULES = (
     "tiledsm.cli.dsm",
     "tiledsm.cli.ortho",
     "tiledsm.cli.orient",
+    "tiledsm.cli.displace",
 )
 
 

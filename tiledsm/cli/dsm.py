@@ -55,29 +55,22 @@ def dsm_recipe(args: argparse.Namespace):
     """The ``pipeline: dsm`` recipe of the command's options, every path
     absolute; a bad value is an :class:`~tiledsm.errors.InvalidOptionError`
     naming the option."""
-    from pydantic import ValidationError
-
+    from tiledsm.cli.run import recipe_of_options
     from tiledsm.errors import InvalidOptionError
     from tiledsm.workflows.dsm import DSMRecipe
 
     if len(args.images) < 2:
         raise InvalidOptionError(f"IMAGES: at least two images are needed, got {len(args.images)}")
     grid = dict(like=_absolute(args.like), crs=args.crs, resolution=args.resolution, bounds=args.bounds, chunk=args.chunk)
-    try:
-        return DSMRecipe.model_validate({
-            "pipeline": "dsm",
-            "name": Path(args.out).name,
-            "input": {"images": [_absolute(p) for p in args.images], "reference": _absolute(args.reference)},
-            "grid": {k: v for k, v in grid.items() if v is not None},
-            "match": {"levels": args.levels, "height_range": args.height_range,
-                      "params": {} if args.device == "cpu" else {"kernel": "cuda", "device": args.device}},
-            "output": {"geoid": _absolute(args.geoid)},
-        })
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        loc = ".".join(str(p) for p in err["loc"])
-        option = next((o for f, o in OPTION_OF_FIELD.items() if loc == f or loc.startswith(f + ".")), loc)
-        raise InvalidOptionError(f"{option}: {err['msg'].removeprefix('Value error, ')}") from None
+    return recipe_of_options(DSMRecipe, {
+        "pipeline": "dsm",
+        "name": Path(args.out).name,
+        "input": {"images": [_absolute(p) for p in args.images], "reference": _absolute(args.reference)},
+        "grid": {k: v for k, v in grid.items() if v is not None},
+        "match": {"levels": args.levels, "height_range": args.height_range,
+                  "params": {} if args.device == "cpu" else {"kernel": "cuda", "device": args.device}},
+        "output": {"geoid": _absolute(args.geoid)},
+    }, OPTION_OF_FIELD)
 
 
 def run(args: argparse.Namespace) -> int:

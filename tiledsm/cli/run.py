@@ -7,7 +7,7 @@ import json
 
 __all__ = [
     "add_parser", "add_cluster_arguments", "add_overwrite_argument", "add_plan_arguments", "cluster_config",
-    "print_warnings", "print_summary", "plan_and_run",
+    "print_warnings", "print_summary", "plan_and_run", "recipe_of_options",
 ]
 
 
@@ -176,3 +176,21 @@ def print_summary(metrics: dict) -> None:
 
     add("", metrics)
     Console().print(table)
+
+
+def recipe_of_options(model, data: dict, option_of_field: dict[str, str]):
+    """``model`` validated from a command's options gathered as a recipe
+    (``data``); a bad value is an :class:`~tiledsm.errors.InvalidOptionError`
+    naming the option of the field at fault (``option_of_field``: recipe
+    field path -> option, a field's sub-fields included)."""
+    from pydantic import ValidationError
+
+    from tiledsm.errors import InvalidOptionError
+
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(p) for p in err["loc"])
+        option = next((o for f, o in option_of_field.items() if loc == f or loc.startswith(f + ".")), loc)
+        raise InvalidOptionError(f"{option}: {err['msg'].removeprefix('Value error, ')}") from None

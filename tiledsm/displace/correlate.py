@@ -55,7 +55,7 @@ import numpy as np
 
 from tiledsm.errors import InvalidOptionError
 
-__all__ = ["CorrelationParams", "correlate_windows", "phase_plane_shift", "coarse_shift", "shifted_windows"]
+__all__ = ["CorrelationParams", "N_LAYERS", "correlate_windows", "phase_plane_shift", "coarse_shift", "shifted_windows"]
 
 
 @dataclass(frozen=True)
@@ -92,6 +92,16 @@ class CorrelationParams:
     batch : int
         Windows transformed together (memory: ~``batch * (window + 2 *
         search)**2 * 48`` bytes).
+    levels : int
+        Coarse levels of the pyramid (:mod:`tiledsm.displace.pyramid`):
+        0, one level searching ``search`` px around zero; ``L > 0``, the
+        images are first correlated at ``2**L`` times coarser pixels with
+        ``search`` there (reach ``search * 2**L`` full-resolution px), and
+        the full-resolution level searches ``refine_search`` px around the
+        candidates that level predicts.
+    refine_search : int
+        Search of the full-resolution level around each predicted
+        candidate, pixels (``levels > 0`` only).
     """
 
     window: int = 32
@@ -104,6 +114,8 @@ class CorrelationParams:
     min_texture: float = 1.0
     max_nodata: float = 0.2
     batch: int = 1024
+    levels: int = 0
+    refine_search: int = 4
 
     def __post_init__(self) -> None:
         if self.window < 8 or self.window % 2:
@@ -118,6 +130,20 @@ class CorrelationParams:
             raise InvalidOptionError(f"frequency_cut: in (0, 1], got {self.frequency_cut}")
         if not 0 <= self.max_nodata < 1:
             raise InvalidOptionError(f"max_nodata: in [0, 1), got {self.max_nodata}")
+        if not 0 <= self.levels <= 6:
+            raise InvalidOptionError(f"levels: 0 to 6 coarse levels, got {self.levels}")
+        if self.refine_search < 1:
+            raise InvalidOptionError(f"refine_search: at least 1 pixel, got {self.refine_search}")
+
+    @property
+    def factor(self) -> int:
+        """Pixels of the full-resolution level per pixel of the coarsest."""
+        return 2**self.levels
+
+    @property
+    def reach(self) -> int:
+        """Largest displacement looked for, full-resolution pixels per axis."""
+        return self.search * self.factor
 
     @property
     def coarse_window(self) -> int:
@@ -126,8 +152,18 @@ class CorrelationParams:
     @property
     def halo(self) -> int:
         """Pixels a block needs around its cells: the coarse window's half,
-        and the fine window moved by up to ``search`` plus the Lanczos support."""
-        return max(self.coarse_window // 2, self.window // 2 + self.search + LANCZOS_A + 1) + 1
+        and the fine window moved by up to ``search`` plus the Lanczos
+        support; with a pyramid, the coarsest level's windows of the coarse
+        cells two cells beyond the block (at ``2**levels`` px per pixel) and
+        the full-resolution windows moved by up to the reach."""
+        single = max(self.coarse_window // 2, self.window // 2 + self.search + LANCZOS_A + 1) + 1
+        if not self.levels:
+            return single
+        f = self.factor
+        coarse = 3 * self.step * f + f * single + f
+        moved = self.reach + f + self.refine_search
+        fine = max(self.window // 2 + moved, self.window // 2 + moved + LANCZOS_A + 1) + 1
+        return max(coarse, fine)
 
 
 def _taper(n: int) -> np.ndarray:
@@ -250,6 +286,9 @@ def phase_plane_shift(pre_w: np.ndarray, post_w: np.ndarray, frequency_cut: floa
 
 LANCZOS_A = 4
 
+#: rows of :func:`correlate_windows`'s output
+N_LAYERS = 7
+
 
 @numba.njit(cache=True, nogil=True)
 def _lanczos_weights(f, a, out):  # pragma: no cover - compiled
@@ -343,8 +382,52 @@ def _windows(img: np.ndarray, rows: np.ndarray, cols: np.ndarray, w: int) -> np.
     return out
 
 
+def _guided_coarse(pre: np.ndarray, post: np.ndarray, r: np.ndarray, c: np.ndarray, gy: np.ndarray, gx: np.ndarray,
+                   params: CorrelationParams, search: int):
+    """Coarse stage around integer guesses ``(gy, gx)``: the ``post`` window
+    is taken at the cell moved by the guess, so only the residual needs to
+    lie within ``search``. Returns the shift (guess included), the peak
+    height and whether both windows had enough data."""
+    wc = params.window + 2 * search
+    taper_c = _taper(wc)
+    a, ok_a, _ = _prepare(_windows(pre, r, c, wc), params.max_nodata, taper_c)
+    b, ok_b, _ = _prepare(_windows(post, r + gy, c + gx, wc), params.max_nodata, taper_c)
+    dy, dx, peak = coarse_shift(a, b, search)
+    return dy + gy, dx + gx, peak, ok_a & ok_b
+
+
+def _best_guess(pre: np.ndarray, post: np.ndarray, r: np.ndarray, c: np.ndarray, guesses: np.ndarray,
+                params: CorrelationParams, search: int):
+    """The coarse stage at every finite candidate of ``guesses`` ``(n, K,
+    2)`` (pixels, rounded to integers), keeping per cell the candidate whose
+    phase-correlation peak is highest (a window that lies on one side of a
+    discontinuity matches that side's motion with a clear peak, the other
+    side's with noise only)."""
+    n, k = guesses.shape[:2]
+    g = np.rint(np.nan_to_num(guesses)).astype(np.int64)
+    use = np.isfinite(guesses).all(axis=2)
+    cell, cand = np.nonzero(use)
+    best = np.full(n, -np.inf)
+    dy, dx = np.zeros(n), np.zeros(n)
+    gy, gx = np.zeros(n, np.int64), np.zeros(n, np.int64)
+    ok = np.zeros(n, bool)
+    if cell.size:
+        ry, rx, peak, ok_p = _guided_coarse(pre, post, r[cell], c[cell], g[cell, cand, 0], g[cell, cand, 1], params,
+                                            search)
+        score = np.where(ok_p, peak, -1.0)
+        # per cell, the pair of highest score: sort by (cell, score) and keep each cell's last
+        order = np.lexsort((score, cell))
+        last = np.r_[cell[order][1:] != cell[order][:-1], True]
+        pick = order[last]
+        at = cell[pick]
+        best[at], dy[at], dx[at], ok[at] = peak[pick], ry[pick], rx[pick], ok_p[pick]
+        gy[at], gx[at] = g[cell[pick], cand[pick], 0], g[cell[pick], cand[pick], 1]
+    return dy, dx, np.where(np.isfinite(best), best, 0.0), ok, gy, gx
+
+
 def correlate_windows(pre: np.ndarray, post: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-                      params: CorrelationParams = CorrelationParams()) -> np.ndarray:
+                      params: CorrelationParams = CorrelationParams(), guesses: np.ndarray | None = None,
+                      search: int | None = None) -> np.ndarray:
     """Displacement of ``post`` against ``pre`` in windows centred at ``(rows, cols)``.
 
     Parameters
@@ -354,17 +437,28 @@ def correlate_windows(pre: np.ndarray, post: np.ndarray, rows: np.ndarray, cols:
     rows, cols : ndarray
         Integer GDAL pixel coordinates of the window centres (module
         conventions), 1-D of the same length; each needs ``params.halo``
-        pixels of the images around it (fewer: NaN pixels count as nodata).
+        pixels of the images around it (fewer: NaN pixels count as nodata),
+        plus the largest guess.
     params : CorrelationParams
+    guesses : ndarray, optional
+        ``(n, K, 2)`` candidate displacements ``(dy, dx)`` per cell, pixels
+        (NaN: no candidate), e.g. from a coarser level
+        (:mod:`tiledsm.displace.pyramid`): the coarse stage looks ``search``
+        px around each (rounded) and keeps the candidate with the highest
+        peak. None: one candidate, zero, and ``search = params.search``
+        (the values are then those of the plain single-level correlation).
+    search : int, optional
+        Search around the guesses, pixels (default ``params.search``).
 
     Returns
     -------
     ndarray
-        ``(6, n)`` float32: ``dy, dx`` (pixels, module conventions; NaN where
+        ``(7, n)`` float32: ``dy, dx`` (pixels, module conventions; NaN where
         unreliable), ``quality`` (phase coherence of the last fine pass),
         ``texture`` (standard deviation of the ``pre`` window), ``sigma_dy,
         sigma_dx`` (formal standard errors of the last fine pass, pixels;
-        :func:`phase_plane_shift`).
+        :func:`phase_plane_shift`), ``peak`` (height of the coarse
+        phase-correlation peak).
     """
     pre = np.asarray(pre, np.float64)
     post = np.asarray(post, np.float64)
@@ -373,16 +467,18 @@ def correlate_windows(pre: np.ndarray, post: np.ndarray, rows: np.ndarray, cols:
     rows = np.asarray(rows, np.int64).ravel()
     cols = np.asarray(cols, np.int64).ravel()
     n = rows.size
-    out = np.full((6, n), np.nan, np.float32)
-    w, wc = params.window, params.coarse_window
-    taper, taper_c = _taper(w), _taper(wc)
+    search = params.search if search is None else int(search)
+    if guesses is None:
+        guesses = np.zeros((n, 1, 2))
+    guesses = np.asarray(guesses, np.float64).reshape(n, -1, 2)
+    out = np.full((N_LAYERS, n), np.nan, np.float32)
+    w = params.window
+    taper = _taper(w)
     for s in range(0, n, params.batch):
         r, c = rows[s:s + params.batch], cols[s:s + params.batch]
-        a, ok_a, _ = _prepare(_windows(pre, r, c, wc), params.max_nodata, taper_c)
-        b, ok_b, _ = _prepare(_windows(post, r, c, wc), params.max_nodata, taper_c)
-        dy, dx, peak = coarse_shift(a, b, params.search)
+        dy, dx, peak, ok_c, gy, gx = _best_guess(pre, post, r, c, guesses[s:s + params.batch], params, search)
         fa, ok_f, texture = _prepare(_windows(pre, r, c, w), params.max_nodata, taper)
-        ok = ok_a & ok_b & ok_f & (peak >= params.min_peak)
+        ok = ok_c & ok_f & (peak >= params.min_peak)
         quality = np.zeros(r.size)
         for _ in range(params.iterations):
             moved = shifted_windows(post, r, c, dy, dx, w)  # NaN outside or next to NaN
@@ -393,7 +489,7 @@ def correlate_windows(pre: np.ndarray, post: np.ndarray, rows: np.ndarray, cols:
             ok &= (np.abs(ry) < 0.75) & (np.abs(rx) < 0.75)
             dy = dy + np.nan_to_num(ry)
             dx = dx + np.nan_to_num(rx)
-        ok &= (np.abs(dy) <= params.search) & (np.abs(dx) <= params.search)
+        ok &= (np.abs(dy - gy) <= search) & (np.abs(dx - gx) <= search)
         ok &= (quality >= params.min_quality) & (texture >= params.min_texture)
         out[0, s:s + r.size] = np.where(ok, dy, np.nan)
         out[1, s:s + r.size] = np.where(ok, dx, np.nan)
@@ -401,4 +497,5 @@ def correlate_windows(pre: np.ndarray, post: np.ndarray, rows: np.ndarray, cols:
         out[3, s:s + r.size] = texture
         out[4, s:s + r.size] = np.where(ok, sig_y, np.nan)
         out[5, s:s + r.size] = np.where(ok, sig_x, np.nan)
+        out[6, s:s + r.size] = peak
     return out

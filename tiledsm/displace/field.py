@@ -32,7 +32,8 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 
-from tiledsm.displace.correlate import CorrelationParams, correlate_windows
+from tiledsm.displace.correlate import N_LAYERS, CorrelationParams
+from tiledsm.displace.pyramid import correlate_cells
 from tiledsm.errors import GridError
 
 __all__ = ["correlate_orthos", "field_chunk", "check_same_grid"]
@@ -65,22 +66,19 @@ def field_chunk(chunk: int, step: int) -> int:
     return max(step, int(round(chunk / step)) * step)
 
 
-def _cells(pre: np.ndarray, post: np.ndarray, n_rows: int, n_cols: int, params: CorrelationParams,
-           halo: int) -> np.ndarray:
-    """``(6, n_rows, n_cols)`` cells of one block: ``pre``/``post`` are the
-    block's ortho pixels plus ``halo`` pixels on every side (NaN past the grid)."""
-    s = params.step
-    # window centres (GDAL coordinates of the block): the middle of each output cell
-    rows = halo + (np.arange(n_rows) + 0.5) * s
-    cols = halo + (np.arange(n_cols) + 0.5) * s
-    R, C = np.meshgrid(rows.astype(np.int64), cols.astype(np.int64), indexing="ij")
-    out = correlate_windows(pre, post, R.ravel(), C.ravel(), params)
-    return out.reshape(6, n_rows, n_cols)
+def _deep_chunks(n: int, side: int, depth: int) -> tuple[int, ...]:
+    """Chunks of ``side`` along ``n`` pixels, the last merged into the one
+    before when it is shallower than ``depth`` (dask's overlap needs every
+    chunk at least as deep as the halo); ``side`` a multiple of the step."""
+    sizes = [side] * (n // side) + ([n % side] if n % side else [])
+    if len(sizes) > 1 and sizes[-1] < depth:
+        sizes[-2:] = [sizes[-2] + sizes[-1]]
+    return tuple(sizes)
 
 
 def _field_block(pre, post, *, params: CorrelationParams, halo: int, block_info=None) -> np.ndarray:
     (r0, r1), (c0, c1) = block_info[None]["array-location"][1:]
-    return _cells(pre, post, r1 - r0, c1 - c0, params, halo)
+    return correlate_cells(pre, post, r1 - r0, c1 - c0, params, halo, (r0, c0))
 
 
 def _read_window(store: str, name: str, r0: int, r1: int, c0: int, c1: int, shape: tuple[int, int]) -> np.ndarray:
@@ -103,7 +101,7 @@ def _store_block(*, pre: tuple[str, str], post: tuple[str, str], shape: tuple[in
     win = (r0 * s - halo, r1 * s + halo, c0 * s - halo, c1 * s + halo)
     a = _read_window(*pre, *win, shape)
     b = _read_window(*post, *win, shape)
-    return _cells(a, b, r1 - r0, c1 - c0, params, halo)
+    return correlate_cells(a, b, r1 - r0, c1 - c0, params, halo, (r0, c0))
 
 
 def correlate_orthos(pre: xr.DataArray | str | Path, post: xr.DataArray | str | Path,
@@ -125,7 +123,8 @@ def correlate_orthos(pre: xr.DataArray | str | Path, post: xr.DataArray | str | 
     Returns
     -------
     xarray.Dataset
-        ``dE``, ``dN`` (metres), ``quality``, ``texture`` on the ortho grid
+        ``dE``, ``dN`` (metres), ``quality``, ``texture``, ``peak``,
+        ``formal_dE``, ``formal_dN`` (metres) on the ortho grid
         coarsened ``params.step`` times (module notes), dask-backed, CRS and
         transform written; attrs hold the parameters.
 
@@ -164,7 +163,7 @@ def correlate_orthos(pre: xr.DataArray | str | Path, post: xr.DataArray | str | 
 
         cells = tuple(tuple(n // s for n in cs) for cs in da.core.normalize_chunks(c, (ny * s, nx * s)))
         raw = da.map_blocks(
-            _store_block, chunks=((6,), *cells), dtype=np.float32, meta=np.empty((0, 0, 0), np.float32),
+            _store_block, chunks=((N_LAYERS,), *cells), dtype=np.float32, meta=np.empty((0, 0, 0), np.float32),
             pre=stores[0], post=stores[1], shape=(ny * s, nx * s), params=params, halo=depth,
             name=f"correlate-{tokenize(stores, params, c)}",
         )
@@ -175,8 +174,9 @@ def correlate_orthos(pre: xr.DataArray | str | Path, post: xr.DataArray | str | 
             arrays.append(d[: ny * s, : nx * s].astype(np.float32).rechunk(c))
         # dask's overlap needs chunks at least as deep as the halo
         if min(min(cs) for cs in arrays[0].chunks) < depth:
-            arrays = [a.rechunk(max(c, depth + s - depth % s)) for a in arrays]
-        chunks_out = ((6,), tuple(n // s for n in arrays[0].chunks[0]), tuple(n // s for n in arrays[0].chunks[1]))
+            side = max(c, depth + s - depth % s)
+            arrays = [a.rechunk(tuple(_deep_chunks(n, side, depth) for n in a.shape)) for a in arrays]
+        chunks_out = ((N_LAYERS,), tuple(n // s for n in arrays[0].chunks[0]), tuple(n // s for n in arrays[0].chunks[1]))
         # one map_overlap: every block sees `depth` pixels of its neighbours
         # (NaN past the grid) and returns its (6, cells, cells)
         raw = da.map_overlap(
@@ -195,6 +195,7 @@ def correlate_orthos(pre: xr.DataArray | str | Path, post: xr.DataArray | str | 
             "texture": (("y", "x"), raw[3]),
             "formal_dE": (("y", "x"), raw[5] * np.float32(abs(res_x))),
             "formal_dN": (("y", "x"), raw[4] * np.float32(abs(res_y))),
+            "peak": (("y", "x"), raw[6]),
         },
         coords={"y": y, "x": x},
     )
@@ -205,6 +206,7 @@ def correlate_orthos(pre: xr.DataArray | str | Path, post: xr.DataArray | str | 
     ds["dN"].attrs.update(units="m", long_name="north displacement (post - pre)")
     ds["quality"].attrs.update(units="1", long_name="phase coherence of the correlation")
     ds["texture"].attrs.update(long_name="standard deviation of the pre window")
+    ds["peak"].attrs.update(units="1", long_name="height of the phase-correlation peak")
     for n in ("dE", "dN"):
         ds[f"formal_{n}"].attrs.update(units="m", long_name=f"formal standard error of {n} (phase-plane fit)")
     ds.attrs.update({f"correlation_{k}": v for k, v in vars(params).items()})

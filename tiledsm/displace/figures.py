@@ -28,13 +28,17 @@ def _save(fig, path: Path) -> Path:
     return Path(path)
 
 
-def displacement_figure(dE: np.ndarray, dN: np.ndarray, dU: np.ndarray, extent: tuple[float, float, float, float],
-                        path: str | Path, *, shade: np.ndarray | None = None, title: str = "", arrows: int = 32,
-                        fault_line: tuple[np.ndarray, np.ndarray] | None = None) -> Path:
-    """Arrows of ``(dE, dN)`` over ``shade`` and the ``dU`` map.
+def displacement_figure(dE: np.ndarray, dN: np.ndarray, dU: np.ndarray | None,
+                        extent: tuple[float, float, float, float], path: str | Path, *,
+                        shade: np.ndarray | None = None, title: str = "", arrows: int = 32,
+                        fault_line: tuple[np.ndarray, np.ndarray] | None = None,
+                        shade_extent: tuple[float, float, float, float] | None = None) -> Path:
+    """Arrows of ``(dE, dN)`` over ``shade`` and the ``dU`` map (``dU``
+    None: the map of the horizontal displacement's length instead).
 
     ``extent`` is ``(left, right, bottom, top)`` metres; arrays ``(y, x)``
-    with row 0 north; about ``arrows`` arrows per side.
+    with row 0 north; about ``arrows`` arrows per side; ``shade`` (values
+    0..1) spans ``shade_extent`` (default ``extent``).
     """
     from matplotlib.figure import Figure
 
@@ -42,7 +46,7 @@ def displacement_figure(dE: np.ndarray, dN: np.ndarray, dU: np.ndarray, extent: 
     fig = Figure(figsize=(13, 6), dpi=100)
     ax1, ax2 = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
     if shade is not None:
-        ax1.imshow(shade, cmap="gray", extent=extent, vmin=0, vmax=1, interpolation="bilinear")
+        ax1.imshow(shade, cmap="gray", extent=shade_extent or extent, vmin=0, vmax=1, interpolation="bilinear")
     k = max(1, int(round(max(ny, nx) / arrows)))
     ys = np.arange(k // 2, ny, k)
     xs = np.arange(k // 2, nx, k)
@@ -56,9 +60,16 @@ def displacement_figure(dE: np.ndarray, dN: np.ndarray, dU: np.ndarray, extent: 
     q = ax1.quiver(X, Y, u, v, mag, cmap="viridis", clim=(0, max(hi, 1e-3)), angles="xy", scale_units="xy",
                    scale=max(hi, 1e-3) / (0.8 * k * (right - left) / nx), width=0.004)
     fig.colorbar(q, ax=ax1, shrink=0.8, label="horizontal displacement (m)")
-    lim = float(np.nanpercentile(np.abs(dU), 98)) if np.isfinite(dU).any() else 1.0
-    im = ax2.imshow(np.ma.masked_invalid(dU), cmap="RdBu_r", vmin=-lim, vmax=lim, extent=extent, interpolation="nearest")
-    fig.colorbar(im, ax=ax2, shrink=0.8, label="dU, vertical displacement (m)")
+    if dU is not None:
+        lim = float(np.nanpercentile(np.abs(dU), 98)) if np.isfinite(dU).any() else 1.0
+        im = ax2.imshow(np.ma.masked_invalid(dU), cmap="RdBu_r", vmin=-lim, vmax=lim, extent=extent,
+                        interpolation="nearest")
+        fig.colorbar(im, ax=ax2, shrink=0.8, label="dU, vertical displacement (m)")
+    else:
+        length = np.hypot(dE, dN)
+        im = ax2.imshow(np.ma.masked_invalid(length), cmap="viridis", vmin=0, vmax=max(hi, 1e-3), extent=extent,
+                        interpolation="nearest")
+        fig.colorbar(im, ax=ax2, shrink=0.8, label="horizontal displacement (m; blank: NaN)")
     for ax in (ax1, ax2):
         if fault_line is not None:
             ax.plot(*fault_line, "k--", lw=1)
@@ -67,7 +78,7 @@ def displacement_figure(dE: np.ndarray, dN: np.ndarray, dU: np.ndarray, extent: 
         ax.set_xlabel("easting (m)")
     ax1.set_ylabel("northing (m)")
     ax1.set_title("dE, dN (arrows, length to scale)")
-    ax2.set_title("dU")
+    ax2.set_title("dU" if dU is not None else "|(dE, dN)|")
     if title:
         fig.suptitle(title)
     return _save(fig, Path(path))

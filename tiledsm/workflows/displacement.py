@@ -28,12 +28,13 @@ with ``post_c = pre + dh`` the co-registered post DSM
 from __future__ import annotations
 
 import logging
+import math
 import time
 from pathlib import Path
 from typing import Literal, Optional
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from tiledsm.recipes import StrictModel
 
@@ -44,13 +45,15 @@ log = logging.getLogger("tiledsm.workflows.displacement")
 COMPONENTS = ("dE", "dN", "dU")
 
 
-class DisplacementSpec(StrictModel):
-    """``displacement:`` of a deformation recipe (pixels of the ortho grid,
-    which is the DSM grid)."""
+class CorrelationSpec(StrictModel):
+    """The correlation options a displacement shares, in the recipe
+    (``displacement:`` of ``deformation``, ``displace``) and on the
+    command line (pixels of the ortho grid)."""
 
     window: int = Field(32, ge=8, description="correlation window side, pixels (even)")
     step: int = Field(8, ge=2, description="spacing of the displacement cells, pixels (even; <= window/2)")
-    search: int = Field(8, ge=1, description="largest displacement looked for, pixels per axis")
+    search: int = Field(8, ge=1, description="largest displacement looked for, pixels per axis (at the coarsest "
+                        "level when max_displacement asks for a pyramid)")
     frequency_cut: float = Field(0.6, gt=0, le=1, description="share of Nyquist used by the sub-pixel phase fit")
     min_quality: float = Field(0.5, ge=0, le=1, description="phase coherence under which a cell is NaN")
     min_peak: float = Field(0.15, ge=0, le=1, description="coarse phase-correlation peak under which a cell is NaN "
@@ -58,17 +61,45 @@ class DisplacementSpec(StrictModel):
     min_texture: float = Field(1.0, ge=0, description="std of the pre window (DN) under which a cell is NaN")
     plane: bool = Field(True, description="remove a plane per component fitted on stable terrain (else its median)")
     stripes: Optional[Literal["rows"]] = Field(None, description="also remove along-row stripes (attitude jitter)")
-    kernel: str = Field("cs", description="ortho interpolation kernel: nn, bl, cr, cs")
-    view: int = Field(0, ge=0, description="which image of each pair is orthorectified (index in the pair)")
-    chunk: int = Field(1024, ge=64, description="ortho pixels per chunk side for the correlation")
+    max_displacement: Optional[float] = Field(
+        None, gt=0, description="largest displacement expected, metres: beyond search pixels, the correlation runs "
+        "coarse to fine (tiledsm.displace.pyramid) with search at the coarsest level; default: search pixels")
+    refine_search: int = Field(4, ge=1, description="with a pyramid: search around each coarse candidate at full "
+                               "resolution, pixels")
 
-    def correlation(self):
+    @field_validator("window", "step")
+    @classmethod
+    def _even(cls, value: int, info) -> int:
+        if value % 2:
+            raise ValueError(f"an even number of pixels, got {value}")
+        if info.field_name == "step" and value > info.data.get("window", value):
+            raise ValueError(f"at most the window ({info.data['window']} px), got {value}")
+        return value
+
+    def levels(self, res: float) -> int:
+        """Coarse levels that make ``search`` at the coarsest reach
+        ``max_displacement`` (``res``: metres per ortho pixel)."""
+        if self.max_displacement is None:
+            return 0
+        need = self.max_displacement / res
+        return 0 if need <= self.search else int(math.ceil(math.log2(need / self.search)))
+
+    def correlation(self, res: float | None = None):
         from tiledsm.displace import CorrelationParams
 
         return CorrelationParams(window=self.window, step=self.step, search=self.search,
                                  frequency_cut=self.frequency_cut, min_quality=self.min_quality,
-                                 min_peak=self.min_peak,
-                                 min_texture=self.min_texture)
+                                 min_peak=self.min_peak, min_texture=self.min_texture,
+                                 levels=0 if res is None else self.levels(res), refine_search=self.refine_search)
+
+
+class DisplacementSpec(CorrelationSpec):
+    """``displacement:`` of a deformation recipe (pixels of the ortho grid,
+    which is the DSM grid)."""
+
+    kernel: str = Field("cs", description="ortho interpolation kernel: nn, bl, cr, cs")
+    view: int = Field(0, ge=0, description="which image of each pair is orthorectified (index in the pair)")
+    chunk: int = Field(1024, ge=64, description="ortho pixels per chunk side for the correlation")
 
 
 def _orthos(spec: DisplacementSpec, pre_image: str, post_image: str, out: Path, cluster, cog: bool, quicklook: bool):
@@ -126,6 +157,27 @@ def _profiles(fields: dict, distance: np.ndarray, half_width: float, bin_m: floa
     return prof
 
 
+def fault_section(fields: dict, sigmas: dict, varios: dict, fault, distance: np.ndarray, x, y, window: int,
+                  step: int, res: float) -> dict:
+    """Offsets across the fault (along and across strike, and ``dU`` when
+    ``fields`` has it) with their errors, and binned profiles; strips from
+    ``window / 2 + step`` (cells whose window straddles the trace left out)
+    to ``max(30 m, 2 windows)`` beyond (``res``: metres per ortho pixel)."""
+    inner = 0.5 * window * res + step * res
+    strip = (inner, inner + max(30.0, 2 * window * res))
+    s, nrm = fault.strike, fault.normal
+    comp = {"along_strike": fields["dE"] * s[0] + fields["dN"] * s[1],
+            "across_strike": fields["dE"] * nrm[0] + fields["dN"] * nrm[1]}
+    csig = {"along_strike": np.hypot(sigmas["dE"] * s[0], sigmas["dN"] * s[1]),
+            "across_strike": np.hypot(sigmas["dE"] * nrm[0], sigmas["dN"] * nrm[1])}
+    cvar = {"along_strike": varios["dE"], "across_strike": varios["dE"]}
+    if "dU" in fields:
+        comp["dU"], csig["dU"], cvar["dU"] = fields["dU"], sigmas["dU"], varios["dU"]
+    offsets = _offsets(comp, csig, cvar, fault, distance, x, y, strip)
+    profiles = _profiles(comp, distance, strip[1] + 10, 2 * step * res)
+    return {"strip_m": list(strip), "offsets": offsets, "profiles": profiles}
+
+
 def run_displacement(spec: DisplacementSpec, out: Path, *, pre_images, post_images, stable_mask, fault, scene,
                      cluster, cog: bool = True, quicklook: bool = True) -> dict:
     """The 3D displacement step (module notes); returns its metrics.
@@ -162,6 +214,8 @@ def run_displacement(spec: DisplacementSpec, out: Path, *, pre_images, post_imag
     pre_o, post_o, ortho_reports = _orthos(spec, pre_images[spec.view], post_images[spec.view], out, cluster, cog,
                                            quicklook)
     timings["orthos_s"] = time.perf_counter() - t0
+    # the pyramid's levels need the ortho's cell size (max_displacement is in metres)
+    params = spec.correlation(abs(float(open_product(pre_o).rio.transform().a)))
 
     # ---- horizontal field (small: the ortho grid coarsened step times)
     t0 = time.perf_counter()
@@ -258,16 +312,7 @@ def run_displacement(spec: DisplacementSpec, out: Path, *, pre_images, post_imag
     distance = None
     if fault is not None:
         distance = fault.signed_distance(x, y)
-        inner = 0.5 * spec.window * res + spec.step * res
-        strip = (inner, inner + max(30.0, 2 * spec.window * res))
-        s, nrm = fault.strike, fault.normal
-        comp = {"along_strike": dE * s[0] + dN * s[1], "across_strike": dE * nrm[0] + dN * nrm[1], "dU": dU}
-        csig = {"along_strike": np.hypot(sigmas["dE"] * s[0], sigmas["dN"] * s[1]),
-                "across_strike": np.hypot(sigmas["dE"] * nrm[0], sigmas["dN"] * nrm[1]), "dU": sigmas["dU"]}
-        cvar = {"along_strike": varios["dE"], "across_strike": varios["dE"], "dU": varios["dU"]}
-        offsets = _offsets(comp, csig, cvar, fault, distance, x, y, strip)
-        profiles = _profiles(comp, distance, strip[1] + 10, 2 * spec.step * res)
-        metrics["fault"] = {"strip_m": list(strip), "offsets": offsets, "profiles": profiles}
+        metrics["fault"] = fault_section(fields, sigmas, varios, fault, distance, x, y, spec.window, spec.step, res)
 
     # ---- truth (synthetic event)
     if scene is not None:
