@@ -90,6 +90,21 @@ def k(tmp_path_factory):
         "type": "Polygon", "coordinates": [[[10.0, 10.0], [10.001, 10.0], [10.001, 10.001], [10.0, 10.001], [10.0, 10.0]]]}}]}
     (root / "far.geojson").write_text(json.dumps(far_poly))
     f["far_mask"] = root / "far.geojson"
+    metres = {"type": "FeatureCollection", "features": [{"type": "Feature", "properties": {}, "geometry": {
+        "type": "Polygon", "coordinates": [[[500000.0, 4890000.0], [500040.0, 4890000.0], [500040.0, 4890040.0],
+                                            [500000.0, 4890000.0]]]}}]}  # UTM metres, "crs" member dropped
+    (root / "metres_no_crs.geojson").write_text(json.dumps(metres))
+    f["metres_mask"] = root / "metres_no_crs.geojson"
+    from rasterio.warp import calculate_default_transform, reproject
+
+    gt, gw, gh = calculate_default_transform(tprof["crs"], "EPSG:4326", tdem.shape[1], tdem.shape[0],
+                                             *rasterio.transform.array_bounds(*tdem.shape, tprof["transform"]))
+    geo = np.zeros((gh, gw), np.float32)
+    reproject(tdem, geo, src_transform=tprof["transform"], src_crs=tprof["crs"], dst_transform=gt, dst_crs="EPSG:4326")
+    with rasterio.open(root / "dsm_geographic.tif", "w", **{**tprof, "crs": "EPSG:4326", "transform": gt,
+                                                            "width": gw, "height": gh}) as dst:
+        dst.write(geo, 1)
+    f["dsm_geographic"] = root / "dsm_geographic.tif"
     (root / "not_a_raster.tif").write_text("hello")
     f["text_tif"] = root / "not_a_raster.tif"
     (root / "a_folder").mkdir()
@@ -163,6 +178,8 @@ CASES = [
     Case("dsm-bounds-outside", dsm("--crs", "EPSG:32631", "--resolution", "0.5", "--bounds", "100", "100", "200", "200"),
          lambda f: ["--bounds"]),
     Case("dsm-like-far-away", dsm("--like", "dsm_far"), lambda f: ["--like"]),
+    # a geographic raster is compared on its own grid, but a DSM is made on a projected one
+    Case("dsm-like-geographic", dsm("--like", "dsm_geographic"), lambda f: ["dsm_geographic.tif", "--like", "geographic"]),
     Case("dsm-like-not-a-raster", dsm("--like", "text_tif"), lambda f: ["not_a_raster.tif", "--like"]),
     Case("dsm-height-range-inverted", dsm("--height-range", "400", "300"), lambda f: ["--height-range"]),
     Case("dsm-reference-missing", dsm("--reference", "nope_ref.tif"), lambda f: ["nope_ref.tif", "--reference"]),
@@ -192,6 +209,9 @@ CASES = [
                                                "--stable-mask", str(f["broken_mask"])], lambda f: ["broken.geojson"]),
     Case("compare-mask-elsewhere", lambda f, out: ["compare", str(f["truth"]), str(f["truth"]), "--out", str(out),
                                                   "--stable-mask", str(f["far_mask"])], lambda f: ["far.geojson"]),
+    Case("compare-mask-metres-without-crs", lambda f, out: ["compare", str(f["truth"]), str(f["truth"]), "--out", str(out),
+                                                           "--stable-mask", str(f["metres_mask"])],
+         lambda f: ["metres_no_crs.geojson", "not longitude/latitude", '"crs"']),
     # --- run (recipes)
     Case("run-misspelled-match-param", lambda f, out: ["run", str(f["r_windw"]), "--out", str(out)], lambda f: ["windw"]),
     Case("run-unknown-field", lambda f, out: ["run", str(f["r_field"]), "--out", str(out)], lambda f: ["chunck"]),

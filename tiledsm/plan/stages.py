@@ -13,9 +13,9 @@ from tiledsm.errors import (
     NoOverlapError,
 )
 from tiledsm.plan.core import (
-    InputInfo, Plan, existing_file, format_bounds, new_plan, overlap_fraction, raster_header, readable_raster, store_raster,
+    InputInfo, Plan, existing_file, format_bounds, new_plan, overlap_fraction, raster_header, readable_raster,
 )
-from tiledsm.plan.dsm import grid_text, refuse_or_warn
+from tiledsm.plan.dsm import refuse_or_warn
 from tiledsm.plan.recipes import polygons_touch, check_sr_weights
 
 
@@ -101,14 +101,14 @@ def plan_compare(ref: str, other: str, out: str, *, stable_mask: str | None, chu
         heads[name] = (p, h)
         plan.inputs.append(InputInfo(name, p, f"{h['shape'][0]} x {h['shape'][1]} cells of {h['res']:g}, {h['crs']}"))
     (ref_p, rh), (oth_p, oh) = heads["REF"], heads["OTHER"]
-    from tiledsm.io.grids import grid_like
+    from tiledsm.compare.align import ReferenceGrid, open_dsm
 
-    grid = grid_like(store_raster(ref_p, "REF") if Path(ref_p).is_dir() else ref_p, chunk=chunks)
+    # the comparison runs on REF's own grid, geographic CRSs included: no projected DSM grid is made
+    grid = ReferenceGrid.of(open_dsm(ref_p, chunks), chunks)
     frac = overlap_fraction(oh["bounds"], oh["crs"], grid)
     refuse_or_warn(plan, frac, NoOverlapError(f"{oth_p}: OTHER: has no ground in common with REF {ref_p}"),
                     f"{oth_p}: OTHER covers only {frac:.0%} of REF's grid")
-    nby, nbx = grid.numblocks
-    plan.grid = grid_text(grid) + f"; OTHER covers {frac:.0%} of it"
+    plan.grid = grid.describe() + f"; OTHER covers {frac:.0%} of it"
     if stable_mask:
         from tiledsm.compare.stable import exclusion_mask, read_polygons
 
