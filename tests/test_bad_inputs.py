@@ -110,6 +110,8 @@ def k(tmp_path_factory):
     (root / "a_folder").mkdir()
     f["folder"] = root / "a_folder"
     (root / "a_file").write_text("x")
+    shutil.copy(v0, root / "earlier_sr.tif")  # an output an earlier `tiledsm sr` wrote
+    f["earlier_sr"] = root / "earlier_sr.tif"
     f["file"] = root / "a_file"
 
     # a geoid grid that covers another part of the world only
@@ -196,6 +198,8 @@ CASES = [
     Case("sr-scale-without-weights", lambda f, out: ["sr", str(f["v0"]), str(out / "sr.tif"), "--model", "srcnn", "--scale", "3"],
          lambda f: ["--scale"]),
     Case("sr-truncated-input", lambda f, out: ["sr", str(f["truncated"]), str(out / "sr.tif")], lambda f: ["truncated.tif"]),
+    Case("sr-output-exists", lambda f, out: ["sr", str(f["v0"]), str(f["earlier_sr"]), "--model", "bicubic"],
+         lambda f: ["earlier_sr.tif", "--overwrite"]),
     # --- compare
     Case("compare-missing", lambda f, out: ["compare", str(f["truth"]), str(f["root"] / "nope.tif"), "--out", str(out)],
          lambda f: ["nope.tif"]),
