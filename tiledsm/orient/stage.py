@@ -25,7 +25,7 @@ from typing import Sequence
 import numpy as np
 
 from tiledsm.geometry.fit import with_affine
-from tiledsm.errors import InvalidOptionError, MatchingError
+from tiledsm.errors import InputFileError, InvalidOptionError, MatchingError
 from tiledsm.geometry.rpc import RPC
 from tiledsm.orient.adjust import AdjustParams, AdjustResult, Block, adjust_block, intersect
 from tiledsm.orient.bias import TERMS, BiasModel, choose_model, get_model
@@ -170,6 +170,8 @@ def orient_images(
     n_img = len(paths)
     g = read_points(gcps, paths, shapes) if gcps else ControlPoints.empty()
     chk = read_points(check_points, paths, shapes) if check_points else ControlPoints.empty()
+    _refuse_points_elsewhere(gcps, "--gcps", rpcs, g, shapes)
+    _refuse_points_elsewhere(check_points, "--check-points", rpcs, chk, shapes)
     if len(g) and len(chk):
         both = sorted(set(g.ids.tolist()) & set(chk.ids.tolist()))
         if both:
@@ -244,6 +246,13 @@ def orient_images(
         block = replace(block, dem_slope_sigma_m=slope_sigma(block.ground0[:, 0], block.ground0[:, 1]))
     result = adjust_block(rpcs, models, block, dem, params.adjust)
     timings["adjust"] = time.perf_counter() - t1
+    on_gcp = np.isfinite(block.prior_sigma_m[block.pt])
+    if on_gcp.any() and result.rejected[on_gcp].all():
+        # the user asked for ground control and none is left: a tie-point-only result would pass for controlled
+        norm = np.hypot(*result.residual_px[on_gcp].T)
+        raise InputFileError(f"{gcps}: --gcps: the adjustment rejected every GCP (median residual "
+                             f"{np.median(norm):.3g} px): they do not fit these images; check their coordinates "
+                             "(lon/lat, ellipsoidal h) and image positions (row/col), or run without --gcps")
 
     # ------------------------------------------------------------ corrected RPCs
     t1 = time.perf_counter()
@@ -263,6 +272,21 @@ def orient_images(
     report["n_tracks_excluded"] = n_excluded
     return Orientation(paths, tuple(shapes), rpcs, tuple(after), tuple(models), tuple(terms), g, chk, tracks,
                        result, block, report)
+
+
+def _refuse_points_elsewhere(path, option: str, rpcs, pts: ControlPoints, shapes) -> None:
+    """Refuse a point file of which no measurement projects (by its image's
+    RPC) within that image's diagonal of its measured position: an RPC bias
+    is pixels to tens of pixels, so such points lie in another scene (or
+    have swapped lon/lat or row/col)."""
+    if not len(pts):
+        return
+    norm = np.hypot(*point_residuals(rpcs, pts).T)
+    diagonal = np.hypot(*np.asarray(shapes, float)[pts.image].T)
+    if not (norm <= diagonal).any():  # NaN (no projection) counts as far
+        raise InputFileError(f"{path}: {option}: no point projects within an image's size of its measured "
+                             f"position (median residual {np.nanmedian(norm) if np.isfinite(norm).any() else np.nan:.3g} px): "
+                             "they lie elsewhere than these images; check lon/lat, h and row/col")
 
 
 def _tie_relative(rpcs, tracks: Tracks | None) -> float | None:
