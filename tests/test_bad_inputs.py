@@ -67,6 +67,12 @@ def k(tmp_path_factory):
     f["one_px"] = with_rpc("one_px.tif", img[:1, :1], rpcs, width=1, height=1)
     lying = rasterio.rpc.RPC(**{**rpcs.to_dict(), "line_off": rpcs.line_off + 50000.0, "samp_off": rpcs.samp_off + 50000.0})
     f["rpc_elsewhere"] = with_rpc("rpc_elsewhere.tif", img, lying)
+    south = rasterio.rpc.RPC(**{**rpcs.to_dict(), "lat_off": -rpcs.lat_off})
+    f["other_hemisphere"] = with_rpc("other_hemisphere.tif", img, south)
+    shutil.copy(v0, root / "truncated_rpc.tif")
+    with rasterio.open(root / "truncated_rpc.tif", "r+") as dst:  # 10 of 20 numbers, as a user's edit may leave
+        dst.update_tags(ns="RPC", LINE_NUM_COEFF=" ".join(dst.tags(ns="RPC")["LINE_NUM_COEFF"].split()[:10]))
+    f["truncated_rpc"] = root / "truncated_rpc.tif"
     away = rasterio.rpc.RPC(**{**rpcs.to_dict(), "long_off": rpcs.long_off + 1.0})
     f["ground_elsewhere"] = with_rpc("ground_elsewhere.tif", img, away)  # a scene 80 km east
 
@@ -90,11 +96,28 @@ def k(tmp_path_factory):
         "type": "Polygon", "coordinates": [[[10.0, 10.0], [10.001, 10.0], [10.001, 10.001], [10.0, 10.001], [10.0, 10.0]]]}}]}
     (root / "far.geojson").write_text(json.dumps(far_poly))
     f["far_mask"] = root / "far.geojson"
+    metres = {"type": "FeatureCollection", "features": [{"type": "Feature", "properties": {}, "geometry": {
+        "type": "Polygon", "coordinates": [[[500000.0, 4890000.0], [500040.0, 4890000.0], [500040.0, 4890040.0],
+                                            [500000.0, 4890000.0]]]}}]}  # UTM metres, "crs" member dropped
+    (root / "metres_no_crs.geojson").write_text(json.dumps(metres))
+    f["metres_mask"] = root / "metres_no_crs.geojson"
+    from rasterio.warp import calculate_default_transform, reproject
+
+    gt, gw, gh = calculate_default_transform(tprof["crs"], "EPSG:4326", tdem.shape[1], tdem.shape[0],
+                                             *rasterio.transform.array_bounds(*tdem.shape, tprof["transform"]))
+    geo = np.zeros((gh, gw), np.float32)
+    reproject(tdem, geo, src_transform=tprof["transform"], src_crs=tprof["crs"], dst_transform=gt, dst_crs="EPSG:4326")
+    with rasterio.open(root / "dsm_geographic.tif", "w", **{**tprof, "crs": "EPSG:4326", "transform": gt,
+                                                            "width": gw, "height": gh}) as dst:
+        dst.write(geo, 1)
+    f["dsm_geographic"] = root / "dsm_geographic.tif"
     (root / "not_a_raster.tif").write_text("hello")
     f["text_tif"] = root / "not_a_raster.tif"
     (root / "a_folder").mkdir()
     f["folder"] = root / "a_folder"
     (root / "a_file").write_text("x")
+    shutil.copy(v0, root / "earlier_sr.tif")  # an output an earlier `tiledsm sr` wrote
+    f["earlier_sr"] = root / "earlier_sr.tif"
     f["file"] = root / "a_file"
 
     # a geoid grid that covers another part of the world only
@@ -110,6 +133,26 @@ def k(tmp_path_factory):
         "id,image,lon,lat,h,row,col\nA,view_0.tif,3.0,45.0,300,10,10\nA,view_0.tif,3.0,45.0,300,12,12\n")
     f["gcps_dup"] = root / "gcps_dup.csv"
 
+    from tiledsm.geometry import RPC
+
+    cam0, cam1 = RPC.from_gdal(rpcs.to_dict()), RPC.from_gdal(rasterio.open(v1).rpcs.to_dict())
+    rc = np.array([[40.0, 40.0], [120.0, 50.0], [60.0, 130.0]])
+    lon, lat = cam0.localize(rc[:, 0], rc[:, 1], np.full(3, cam0.height_off))
+    r1, c1 = cam1.project(lon, lat, np.full(3, cam0.height_off))
+
+    def gcp_file(name, dlon=(0.0, 0.0, 0.0), dlat=(0.0, 0.0, 0.0)):
+        rows = ["id,image,lon,lat,h,row,col"]
+        for k in range(3):
+            for image, row, col in (("view_0.tif", rc[k, 0], rc[k, 1]), ("view_1.tif", r1[k], c1[k])):
+                rows.append(f"G{k},{image},{lon[k] + dlon[k]:.9f},{lat[k] + dlat[k]:.9f},{cam0.height_off:.3f},"
+                            f"{row:.3f},{col:.3f}")
+        (root / name).write_text("\n".join(rows) + "\n")
+        return root / name
+
+    f["gcps_elsewhere"] = gcp_file("gcps_elsewhere.csv", dlon=(10.0, 10.0, 10.0))  # the case: 3e5 px off
+    m = 1 / 111_000  # about a metre, in degrees: ground 30 m off, each GCP another way
+    f["gcps_inconsistent"] = gcp_file("gcps_inconsistent.csv", dlon=(30 * m, -30 * m, 0.0), dlat=(0.0, 0.0, 30 * m))
+
     def recipe(name: str, text: str) -> Path:
         (root / name).write_text(text)
         return root / name
@@ -118,6 +161,7 @@ def k(tmp_path_factory):
     f["r_windw"] = recipe("windw.yaml", f"pipeline: dsm\ninput:\n{images}match: {{params: {{windw: 5}}}}\n")
     f["r_field"] = recipe("field.yaml", f"pipeline: dsm\ninput:\n{images}grid: {{chunck: 64}}\n")
     f["r_pipeline"] = recipe("pipeline.yaml", f"pipeline: dsn\ninput:\n{images}")
+    f["r_pipeline_list"] = recipe("pipeline_list.yaml", f"pipeline: [dsm]\ninput:\n{images}")
     f["r_scale"] = recipe("scale.yaml", f"pipeline: sr_dsm\ninput:\n{images}sr: {{scale: 3}}\n")
     f["r_missing"] = recipe("missing_img.yaml", f"pipeline: dsm\ninput:\n  images: [{root / 'nope.tif'}, {v1}]\n")
     return f
@@ -150,6 +194,10 @@ CASES = [
     Case("dsm-all-nodata", dsm_with("all_nodata"), lambda f: ["all_nodata.tif"]),
     Case("dsm-one-pixel", dsm_with("one_px"), lambda f: ["one_px.tif"]),
     Case("dsm-rpc-lies-about-position", dsm_with("rpc_elsewhere"), lambda f: ["rpc_elsewhere.tif"]),
+    Case("dsm-rpc-truncated-coefficients", dsm_with("truncated_rpc"), lambda f: ["truncated_rpc.tif", "line_num", "truncated"]),
+    Case("dsm-rpc-offsets-of-another-image", dsm_with("rpc_elsewhere"), lambda f: ["rpc_elsewhere.tif", "LINE_OFF"]),
+    Case("dsm-other-hemisphere", lambda f, out: ["dsm", str(f["v0"]), str(f["other_hemisphere"]), "--out", str(out)],
+         lambda f: [f["v0"].name, "other_hemisphere.tif", "no common ground"]),
     Case("dsm-same-image-twice", lambda f, out: ["dsm", str(f["v0"]), str(f["v0"]), "--out", str(out)],
          lambda f: [f["v0"].name]),
     # --- dsm: options
@@ -163,6 +211,8 @@ CASES = [
     Case("dsm-bounds-outside", dsm("--crs", "EPSG:32631", "--resolution", "0.5", "--bounds", "100", "100", "200", "200"),
          lambda f: ["--bounds"]),
     Case("dsm-like-far-away", dsm("--like", "dsm_far"), lambda f: ["--like"]),
+    # a geographic raster is compared on its own grid, but a DSM is made on a projected one
+    Case("dsm-like-geographic", dsm("--like", "dsm_geographic"), lambda f: ["dsm_geographic.tif", "--like", "geographic"]),
     Case("dsm-like-not-a-raster", dsm("--like", "text_tif"), lambda f: ["not_a_raster.tif", "--like"]),
     Case("dsm-height-range-inverted", dsm("--height-range", "400", "300"), lambda f: ["--height-range"]),
     Case("dsm-reference-missing", dsm("--reference", "nope_ref.tif"), lambda f: ["nope_ref.tif", "--reference"]),
@@ -179,6 +229,8 @@ CASES = [
     Case("sr-scale-without-weights", lambda f, out: ["sr", str(f["v0"]), str(out / "sr.tif"), "--model", "srcnn", "--scale", "3"],
          lambda f: ["--scale"]),
     Case("sr-truncated-input", lambda f, out: ["sr", str(f["truncated"]), str(out / "sr.tif")], lambda f: ["truncated.tif"]),
+    Case("sr-output-exists", lambda f, out: ["sr", str(f["v0"]), str(f["earlier_sr"]), "--model", "bicubic"],
+         lambda f: ["earlier_sr.tif", "--overwrite"]),
     # --- compare
     Case("compare-missing", lambda f, out: ["compare", str(f["truth"]), str(f["root"] / "nope.tif"), "--out", str(out)],
          lambda f: ["nope.tif"]),
@@ -192,10 +244,15 @@ CASES = [
                                                "--stable-mask", str(f["broken_mask"])], lambda f: ["broken.geojson"]),
     Case("compare-mask-elsewhere", lambda f, out: ["compare", str(f["truth"]), str(f["truth"]), "--out", str(out),
                                                   "--stable-mask", str(f["far_mask"])], lambda f: ["far.geojson"]),
+    Case("compare-mask-metres-without-crs", lambda f, out: ["compare", str(f["truth"]), str(f["truth"]), "--out", str(out),
+                                                           "--stable-mask", str(f["metres_mask"])],
+         lambda f: ["metres_no_crs.geojson", "not longitude/latitude", '"crs"']),
     # --- run (recipes)
     Case("run-misspelled-match-param", lambda f, out: ["run", str(f["r_windw"]), "--out", str(out)], lambda f: ["windw"]),
     Case("run-unknown-field", lambda f, out: ["run", str(f["r_field"]), "--out", str(out)], lambda f: ["chunck"]),
     Case("run-unknown-pipeline", lambda f, out: ["run", str(f["r_pipeline"]), "--out", str(out)], lambda f: ["dsn"]),
+    Case("run-pipeline-is-a-list", lambda f, out: ["run", str(f["r_pipeline_list"]), "--out", str(out)],
+         lambda f: ["pipeline_list.yaml", "pipeline:", "['dsm']", "a list"]),
     Case("run-sr-scale-without-weights", lambda f, out: ["run", str(f["r_scale"]), "--out", str(out)], lambda f: ["sr.scale"]),
     Case("run-recipe-is-folder", lambda f, out: ["run", str(f["folder"]), "--out", str(out)], lambda f: ["a_folder"]),
     Case("run-recipe-image-missing", lambda f, out: ["run", str(f["r_missing"]), "--out", str(out)], lambda f: ["nope.tif"]),
@@ -222,6 +279,15 @@ CASES = [
                                                      "--out", str(out)], lambda f: ["gcps_dup.csv"]),
     Case("orient-no-common-ground", lambda f, out: ["orient", str(f["v0"]), str(f["ground_elsewhere"]), "--out", str(out)],
          lambda f: ["ground_elsewhere.tif", "no common ground"]),
+    Case("orient-gcps-elsewhere", lambda f, out: ["orient", str(f["v0"]), str(f["v1"]), "--gcps", str(f["gcps_elsewhere"]),
+                                                 "--out", str(out)], lambda f: ["gcps_elsewhere.csv", "--gcps"]),
+    Case("orient-gcps-all-rejected", lambda f, out: ["orient", str(f["v0"]), str(f["v1"]), "--gcps",
+                                                    str(f["gcps_inconsistent"]), "--out", str(out)],
+         lambda f: ["gcps_inconsistent.csv", "--gcps", "rejected every GCP"]),
+    Case("orient-other-hemisphere", lambda f, out: ["orient", str(f["v0"]), str(f["other_hemisphere"]), "--out", str(out)],
+         lambda f: [f["v0"].name, "other_hemisphere.tif", "no common ground"]),
+    Case("orient-rpc-truncated-coefficients", lambda f, out: ["orient", str(f["v0"]), str(f["truncated_rpc"]),
+                                                             "--out", str(out)], lambda f: ["truncated_rpc.tif", "line_num"]),
     Case("orient-truncated-image", lambda f, out: ["orient", str(f["v0"]), str(f["truncated"]), "--out", str(out)],
          lambda f: ["truncated.tif"]),
     Case("orient-geoid-without-dem", lambda f, out: ["orient", str(f["v0"]), str(f["v1"]), "--geoid",

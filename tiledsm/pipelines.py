@@ -72,8 +72,9 @@ def load_recipe(path: str | Path, overrides: dict[str, Any] | None = None) -> Ba
     """
     data = read_recipe(path, overrides)
     name = data.get("pipeline")
-    if name not in PIPELINES:
-        raise RecipeError(f"{path}: pipeline: expected one of {sorted(PIPELINES)}, got {name!r}")
+    if not isinstance(name, str) or name not in PIPELINES:  # a list (`pipeline: [dsm]`) is not hashable
+        kind = "" if name is None or isinstance(name, str) else f" (a {type(name).__name__}; one name is expected)"
+        raise RecipeError(f"{path}: pipeline: expected one of {sorted(PIPELINES)}, got {name!r}{kind}")
     try:
         return PIPELINES[name].recipe.model_validate(data)
     except ValidationError as exc:

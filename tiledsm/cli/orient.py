@@ -30,6 +30,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--model", choices=("shift", "affine"), default=None,
                    help="bias model of every image (default: per image by point count)")
     p.add_argument("--no-tie-points", action="store_true", help="adjust on GCPs only")
+    p.add_argument("--datum", choices=("consensus", "mean", "priors"), default="consensus",
+                   help="without GCPs or DEM, how the block is held: consensus (default: the views that agree keep "
+                   "their RPCs, one that disagrees takes the correction), mean (the views' mean correction at zero) "
+                   "or priors (least squares of all terms)")
     p.add_argument("--tile", type=int, default=512, help="tie-point tile side, pixels")
     p.add_argument("--extractor", choices=("structural", "features"), default="structural",
                    help="tie-point matcher: structural (Wallis, Förstner points, NCC along the RPC curve, "
@@ -59,18 +63,22 @@ def run(args: argparse.Namespace) -> int:
         return 0
     prepared = plan.product
     paths = {i.role: i.path for i in plan.inputs}  # absolute
-    params = OrientParams(model=args.model, tie_points=not args.no_tie_points,
+    params = OrientParams(model=args.model, tie_points=not args.no_tie_points, datum=args.datum,
                           tracks=TrackParams(tile=args.tile, extractor=args.extractor))
     with OutputLock(plan.out):
         # the tie-point tiles are the only parallel part; GCP-only runs start no cluster
         with compute_context(cluster) if params.tie_points and len(prepared.images) > 1 else nullcontext():
             o = orient_images(prepared.images, paths.get("--gcps"), paths.get("--check-points"), prepared.dem,
                               params, rpcs=prepared.rpcs)
-        doc = write_orientation(o, plan.out, params, extra={"command": "tiledsm orient", "warnings": plan.warnings,
+        datum_warning = [o.report["datum"]["warning"]] if "warning" in o.report["datum"] else []
+        doc = write_orientation(o, plan.out, params, extra={"command": "tiledsm orient",
+                                                            "warnings": plan.warnings + datum_warning,
                                                             "inputs": {
             "images": list(prepared.images), "gcps": paths.get("--gcps"),
             "check_points": paths.get("--check-points"), "dem": paths.get("--dem"), "geoid": paths.get("--geoid")}})
     _print_table(doc)
+    print(f"datum: {doc['datum']['fixed_by']}")
+    print_warnings("orient", datum_warning)
     return 0
 
 

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from tiledsm.cli.run import add_cluster_arguments, add_plan_arguments, cluster_config
@@ -45,6 +46,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         "were trained on full-range images) or the full scale 2**bit-depth - 1")
     p.add_argument("--chunk", type=int, default=512, help="tile side, input pixels")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="torch device (cuda only when available)")
+    p.add_argument("--overwrite", action="store_true", help="replace OUTPUT when it exists (default: refuse)")
     add_cluster_arguments(p)
     add_plan_arguments(p, large=False)
     p.set_defaults(func=run_sr)
@@ -80,9 +82,12 @@ def run_sr(args: argparse.Namespace) -> int:
         if not torch.cuda.is_available():
             raise SRError("--device cuda: no CUDA device is available (use --device cpu)")
     plan = plan_sr(args.input, args.output, model=args.model, scale=args.scale, weights=args.weights,
-                   chunk=args.chunk, cluster=cluster, device=args.device, blur_sigma=args.blur_sigma,
+                   chunk=args.chunk, cluster=cluster, overwrite=args.overwrite, device=args.device, blur_sigma=args.blur_sigma,
                    noise=args.noise, bit_depth=args.bit_depth, normalisation=args.normalisation)
     print_warnings("sr", plan.warnings)
+    if plan.product.attrs.get("sr_scheme"):
+        print(f"tiledsm sr: {args.model} has no native x{args.scale} weights: its {plan.product.attrs['sr_scheme']}",
+              file=sys.stderr)
     if args.dry_run:
         print(plan.summary())
         return 0
@@ -101,7 +106,8 @@ def write_sr(hr, out: Path, scale: int, cluster) -> int:
         else:
             tags = {k: v for k, v in hr.attrs.items() if k.startswith("sr_")}
             write_geotiff_with_rpc(hr, out, scene_rpc(hr), nodata=float("nan"), dtype="float32", tags=tags)
-    print(f"{out}: {hr.sizes['y']} x {hr.sizes['x']} px, model {hr.attrs['sr_model']} x{scale}")
+    scheme = f" ({hr.attrs['sr_scheme']})" if hr.attrs.get("sr_scheme") else ""
+    print(f"{out}: {hr.sizes['y']} x {hr.sizes['x']} px, model {hr.attrs['sr_model']} x{scale}{scheme}")
     return 0
 
 

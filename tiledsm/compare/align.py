@@ -29,7 +29,7 @@ from affine import Affine
 
 from tiledsm.errors import GridError, InputFileError, NoOverlapError
 
-__all__ = ["open_dsm", "align_dsms", "AlignedPair", "dsm_name"]
+__all__ = ["open_dsm", "align_dsms", "AlignedPair", "ReferenceGrid", "dsm_name"]
 
 _EPS = 1e-6  # pixel tolerance when deciding two grids share a pixel phase
 
@@ -90,6 +90,66 @@ def check_grid(dsm: xr.DataArray) -> Affine:
     if t.a == 0 or t.e == 0:
         raise GridError(f"{dsm_name(dsm)}: degenerate geotransform {tuple(t)[:6]}")
     return t
+
+
+@dataclass(frozen=True)
+class ReferenceGrid:
+    """The grid a comparison runs on: the reference DSM's own pixel grid, in
+    its own CRS, **geographic included** (unlike
+    :class:`tiledsm.geometry.grid.GroundGrid`, which is the projected grid a
+    DSM is *made* on). Nothing is resampled onto a projected grid: the
+    co-registration and slopes measure metres per cell row by row
+    (:func:`tiledsm.compare.terrain.metric_steps`).
+
+    Attributes
+    ----------
+    crs : rasterio.crs.CRS
+    transform : affine.Affine
+        GDAL corner convention, no rotation (cells may be non-square).
+    shape : (int, int)
+        ``(rows, cols)``.
+    chunk : int
+        Chunk edge of the comparison, cells.
+    """
+
+    crs: object
+    transform: Affine
+    shape: tuple[int, int]
+    chunk: int
+
+    @classmethod
+    def of(cls, dsm: xr.DataArray, chunk: int) -> "ReferenceGrid":
+        """The grid of an opened reference DSM (:func:`open_dsm`)."""
+        return cls(dsm.rio.crs, check_grid(dsm), tuple(dsm.rio.shape), int(chunk))
+
+    @property
+    def height(self) -> int:
+        return self.shape[0]
+
+    @property
+    def width(self) -> int:
+        return self.shape[1]
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """``(left, bottom, right, top)`` in the grid's CRS units."""
+        from rasterio.transform import array_bounds
+
+        west, south, east, north = array_bounds(self.height, self.width, self.transform)
+        return (west, south, east, north)
+
+    @property
+    def numblocks(self) -> tuple[int, int]:
+        return (-(-self.height // self.chunk), -(-self.width // self.chunk))
+
+    def describe(self) -> str:
+        """One line: CRS, cell size with its unit, shape, chunks, bounds."""
+        unit = "°" if self.crs.is_geographic else " m"
+        nby, nbx = self.numblocks
+        return (f"{self.crs}, {abs(self.transform.a):.6g}{unit} x {abs(self.transform.e):.6g}{unit} cells, "
+                f"{self.height} x {self.width} cells ({self.height * self.width / 1e6:.3g} Mcells), chunks of "
+                f"{self.chunk}: {nby} x {nbx} = {nby * nbx}, bounds "
+                + "(" + ", ".join(f"{v:.6g}" for v in self.bounds) + ")")
 
 
 @dataclass(frozen=True)

@@ -83,9 +83,38 @@ def read_polygons(path: str | Path, dst_crs) -> list[dict]:
     collect(doc, "root")
     if not geoms:
         raise InputFileError(f"{path}: no polygon found")
+    if not name:
+        _check_degrees(path, geoms)
     if src_crs != dst_crs:
-        geoms = [transform_geom(src_crs, dst_crs, g) for g in geoms]
+        try:
+            geoms = [transform_geom(src_crs, dst_crs, g) for g in geoms]
+        except Exception as exc:  # rasterio/PROJ raise several types
+            raise InputFileError(f"{path}: its polygons cannot be transformed from {src_crs} to {dst_crs} ({exc})") from None
     return geoms
+
+
+def _check_degrees(path: Path, geoms: list[dict]) -> None:
+    """Refuse polygons of a GeoJSON without ``crs`` member whose coordinates
+    are not longitude/latitude degrees. RFC 7946 makes such a file WGS84;
+    metres there are a projected file whose ``crs`` was dropped. Guessing the
+    DSM's CRS could exclude the wrong ground silently, so the user says."""
+    try:
+        xy = np.array([pt[:2] for g in geoms for ring in _rings(g) for pt in ring], dtype=float).reshape(-1, 2)
+    except (TypeError, ValueError, IndexError) as exc:
+        raise InputFileError(f"{path}: malformed polygon coordinates ({exc})") from None
+    outside = (np.abs(xy[:, 0]) > 180) | (np.abs(xy[:, 1]) > 90)
+    if outside.any():
+        x, y = xy[np.argmax(outside)]
+        raise InputFileError(
+            f"{path}: coordinates such as ({x:g}, {y:g}) are not longitude/latitude degrees, the CRS of a GeoJSON "
+            'without a "crs" member (RFC 7946); add one naming its CRS, e.g. "crs": {"type": "name", '
+            '"properties": {"name": "EPSG:32631"}}, or reproject it to EPSG:4326')
+
+
+def _rings(geom: dict) -> list:
+    """The coordinate rings of a Polygon or MultiPolygon."""
+    coords = geom.get("coordinates") or []
+    return list(coords) if geom["type"] == "Polygon" else [ring for poly in coords for ring in poly]
 
 
 def exclusion_mask(geoms: list[dict], transform: Affine, shape: tuple[int, int]) -> np.ndarray:

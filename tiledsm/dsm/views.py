@@ -99,6 +99,7 @@ def scene_height_range(views: Sequence[View], params: DSMParams) -> tuple[tuple[
     """
     from concurrent.futures import ThreadPoolExecutor
 
+    from tiledsm.geometry.footprint import overlap_lonlat_bounds
     from tiledsm.match.tiepoints import height_range_from_tiepoints, match_tiepoints, relative_correction
 
     report: dict = {}
@@ -111,6 +112,12 @@ def scene_height_range(views: Sequence[View], params: DSMParams) -> tuple[tuple[
     corrected = [ref]
     ranges = []
     for i, other in enumerate(views[1:], start=1):
+        # RPCs of images that share no ground (another hemisphere, another scene) match nothing real; say so
+        # before tie points are triangulated into nonsense or localisation fails to converge
+        rpcs = (ref.rpc, other.rpc)
+        overlap_lonlat_bounds(ref.rpc, ref.shape, other.rpc, other.shape,
+                              (min(r.height_off - abs(r.height_scale) for r in rpcs),
+                               max(r.height_off + abs(r.height_scale) for r in rpcs)))
         p1, p2 = match_tiepoints(ref_img, overviews[i])
         # overview pixel coordinates (GDAL convention) -> full image
         p1, p2 = p1 * factor, p2 * factor

@@ -162,6 +162,10 @@ class RPC:
         for name in ("line_scale", "samp_scale", "lat_scale", "lon_scale", "height_scale"):
             if getattr(self, name) == 0:
                 raise RPCError(f"RPC{where}: {name} is zero")
+        for name in ("line_num", "samp_num"):
+            if not np.any(getattr(self, name)):
+                # GDAL reads a coefficient list shorter than 20 as zeros
+                raise RPCError(f"RPC{where}: {name} is all zeros (a truncated coefficient list? 20 are needed)")
         if self.line_den[0] == 0 and not np.any(self.line_den):
             raise RPCError(f"RPC{where}: line_den is all zeros")
         if self.samp_den[0] == 0 and not np.any(self.samp_den):

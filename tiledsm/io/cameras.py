@@ -31,6 +31,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 
 from tiledsm.errors import InputFileError, RPCError, UnsupportedFormatError
 from tiledsm.geometry.rpc import RPC
@@ -505,6 +506,49 @@ def find_camera(image_path: str | Path, rpc: str | Path | None = None) -> tuple[
     image_path = Path(image_path)
     if not image_path.exists():
         raise InputFileError(f"{image_path}: no such file")
+    cam, origin = _find_camera(image_path, rpc)
+    _check_image_in_domain(cam, origin, image_path)
+    return cam, origin
+
+
+#: the image centre localised this far outside the RPC's normalised ground domain [-1, 1] means offsets of
+#: another image (the image coordinates themselves may lie anywhere: a crop keeps its full scene's scales)
+_MAX_NORMALISED = 3.0
+
+
+def _check_image_in_domain(cam: RPC, origin: str, image_path: Path) -> None:
+    """Refuse an RPC that cannot localise the image's centre pixel inside
+    (or near) the ground domain its polynomials were fitted on: its
+    ``LINE_OFF``/``SAMP_OFF`` (or lat/lon offsets) belong to another image,
+    and later steps would fail with only "did not converge"."""
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.open(image_path) as ds:
+                height, width = ds.height, ds.width
+    except rasterio.errors.RasterioIOError:
+        return  # not this check's to report
+    problem = f"{image_path}: its RPC ({origin}) does not describe this image's {height} x {width} pixels: "
+    try:
+        with np.errstate(all="ignore"):
+            lon, lat = cam.localize(np.array([height / 2]), np.array([width / 2]), np.array([cam.height_off]))
+    except RPCError:
+        raise RPCError(problem + f"its centre pixel localises nowhere (LINE_OFF {cam.line_off:g}, SAMP_OFF "
+                       f"{cam.samp_off:g}, LINE_SCALE {cam.line_scale:g}, SAMP_SCALE {cam.samp_scale:g}: offsets of "
+                       "another image or crop?)") from None
+    n_lat = (float(np.ravel(lat)[0]) - cam.lat_off) / cam.lat_scale
+    n_lon = (float(np.ravel(lon)[0]) - cam.lon_off) / cam.lon_scale
+    if not max(abs(n_lat), abs(n_lon)) <= _MAX_NORMALISED:
+        raise RPCError(problem + f"its centre pixel localises at normalised lat {n_lat:.3g}, lon {n_lon:.3g}, far "
+                       f"outside the [-1, 1] its polynomials describe (LINE_OFF {cam.line_off:g}, SAMP_OFF "
+                       f"{cam.samp_off:g}: offsets of another image or crop?)")
+
+
+def _find_camera(image_path: Path, rpc: str | Path | None) -> tuple[RPC, str]:
+    """:func:`find_camera` before its check of the RPC's domain."""
     if rpc is not None:
         cam = read_rpc(rpc)
         origin = cam.source

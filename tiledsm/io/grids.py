@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from tiledsm.errors import InputFileError
+from tiledsm.errors import GridError, InputFileError
 from tiledsm.geometry.grid import GroundGrid
 
 __all__ = ["grid_like", "grid_array"]
@@ -50,6 +50,11 @@ def grid_like(ref, chunk: int | None = None) -> GroundGrid:
         crs, transform, shape = ref.rio.crs, ref.rio.transform(), ref.rio.shape
         if chunk is None and getattr(ref, "chunks", None):
             chunk = int(ref.chunks[ref.get_axis_num("y")][0])
+    if crs is not None and crs.is_geographic:
+        # GroundGrid's own refusal cannot name the raster; a DSM is made on a projected grid, a geographic
+        # raster is only compared (tiledsm.compare.align.ReferenceGrid)
+        raise GridError(f"{name}: CRS {crs} is geographic (degrees); a DSM grid needs a projected CRS in metres "
+                        "(e.g. the local UTM zone): reproject the raster first")
     return GroundGrid.from_transform(crs, transform, shape, chunk, name)
 
 

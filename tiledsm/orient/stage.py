@@ -25,7 +25,7 @@ from typing import Sequence
 import numpy as np
 
 from tiledsm.geometry.fit import with_affine
-from tiledsm.errors import InvalidOptionError, MatchingError
+from tiledsm.errors import InputFileError, InvalidOptionError, MatchingError
 from tiledsm.geometry.rpc import RPC
 from tiledsm.orient.adjust import AdjustParams, AdjustResult, Block, adjust_block, intersect
 from tiledsm.orient.bias import TERMS, BiasModel, choose_model, get_model
@@ -53,7 +53,17 @@ class OrientParams:
     refit_max_error_px : float
         Tolerance of the corrected RPC's refit (affine models), pixels.
     tracks, adjust : TrackParams, AdjustParams
+    datum : str
+        How a block with nothing absolute in it (tie points only: no GCP,
+        no DEM) is held (:data:`tiledsm.orient.datum.DATUMS`): "consensus"
+        (default), "mean" or "priors".
     """
+
+    def __post_init__(self):
+        from tiledsm.orient.datum import DATUMS
+
+        if self.datum not in DATUMS:
+            raise InvalidOptionError(f"datum: expected one of {sorted(DATUMS)}, got {self.datum!r}")
 
     model: str | None = None
     tie_points: bool = True
@@ -63,6 +73,7 @@ class OrientParams:
     refit_max_error_px: float = 0.01
     tracks: TrackParams = TrackParams()
     adjust: AdjustParams = AdjustParams()
+    datum: str = "consensus"
 
 
 @dataclass(frozen=True)
@@ -170,6 +181,8 @@ def orient_images(
     n_img = len(paths)
     g = read_points(gcps, paths, shapes) if gcps else ControlPoints.empty()
     chk = read_points(check_points, paths, shapes) if check_points else ControlPoints.empty()
+    _refuse_points_elsewhere(gcps, "--gcps", rpcs, g, shapes)
+    _refuse_points_elsewhere(check_points, "--check-points", rpcs, chk, shapes)
     if len(g) and len(chk):
         both = sorted(set(g.ids.tolist()) & set(chk.ids.tolist()))
         if both:
@@ -244,12 +257,21 @@ def orient_images(
         block = replace(block, dem_slope_sigma_m=slope_sigma(block.ground0[:, 0], block.ground0[:, 1]))
     result = adjust_block(rpcs, models, block, dem, params.adjust)
     timings["adjust"] = time.perf_counter() - t1
+    on_gcp = np.isfinite(block.prior_sigma_m[block.pt])
+    if on_gcp.any() and result.rejected[on_gcp].all():
+        # the user asked for ground control and none is left: a tie-point-only result would pass for controlled
+        norm = np.hypot(*result.residual_px[on_gcp].T)
+        raise InputFileError(f"{gcps}: --gcps: the adjustment rejected every GCP (median residual "
+                             f"{np.median(norm):.3g} px): they do not fit these images; check their coordinates "
+                             "(lon/lat, ellipsoidal h) and image positions (row/col), or run without --gcps")
 
     # ------------------------------------------------------------ corrected RPCs
     t1 = time.perf_counter()
+    datum, shift = _datum(rpcs, models, result, block, len(g) == 0 and dem is None, params.datum)
     after, terms = [], []
     for i, (rpc, m) in enumerate(zip(rpcs, models)):
         a, b = m.full(result.x[i])
+        a[0], b[0] = a[0] + shift[i, 0], b[0] + shift[i, 1]
         terms.append(dict(zip(TERMS, [float(v) for v in (*a, *b)])))
         h_range = (rpc.height_off - abs(rpc.height_scale), rpc.height_off + abs(rpc.height_scale))
         after.append(with_affine(rpc, a, b, image_shape=shapes[i], h_range=h_range,
@@ -260,9 +282,53 @@ def orient_images(
 
     report = _report(paths, rpcs, after, models, terms, g, chk, tracks, guide, block, result, dem)
     report["timings_s"] = timings
+    report["datum"] = datum
     report["n_tracks_excluded"] = n_excluded
     return Orientation(paths, tuple(shapes), rpcs, tuple(after), tuple(models), tuple(terms), g, chk, tracks,
                        result, block, report)
+
+
+def _datum(rpcs, models, result: AdjustResult, block: Block, free: bool, rule: str) -> tuple[dict, np.ndarray]:
+    """How the block's datum was fixed (for orient.json) and the image shift
+    ``(n, 2)`` (pixels, added to ``A0, B0``) that moves a ``free`` block
+    (tie points only) onto the datum ``rule`` (:mod:`tiledsm.orient.datum`)."""
+    import logging
+
+    from tiledsm.orient.datum import DATUM_RULES, DATUMS, ground_jacobians
+
+    shift = np.zeros((len(models), 2))
+    if not free:
+        return {"fixed_by": "GCPs and/or the reference DEM"}, shift
+    doc = {"fixed_by": f"tie points only ({rule}): {DATUM_RULES[rule]}",
+           "warning": "tie points fix only how the views agree; absolute accuracy needs GCPs (--gcps) or a "
+                      "reference DEM (--dem)"}
+    if DATUMS[rule] is not None:
+        x = np.array([[m.full(result.x[i])[0][0], m.full(result.x[i])[1][0]] for i, m in enumerate(models)])
+        measured = np.unique(block.pt[~result.rejected])  # points left out of the block sit at (0, 0)
+        g = result.ground[measured]
+        lon, lat, h = np.median(g[np.isfinite(g).all(axis=1)], axis=0)
+        J = ground_jacobians(rpcs, lon, lat, h)
+        t = DATUMS[rule](x, J)
+        shift = np.einsum("nij,j->ni", J, t)
+        doc.update(ground_translation_m={"east": float(t[0]), "north": float(t[1]), "up": float(t[2])},
+                   shift_px=[[float(v) for v in s] for s in shift])
+    logging.getLogger("tiledsm.orient").info("datum fixed by %s; %s", doc["fixed_by"], doc["warning"])
+    return doc, shift
+
+
+def _refuse_points_elsewhere(path, option: str, rpcs, pts: ControlPoints, shapes) -> None:
+    """Refuse a point file of which no measurement projects (by its image's
+    RPC) within that image's diagonal of its measured position: an RPC bias
+    is pixels to tens of pixels, so such points lie in another scene (or
+    have swapped lon/lat or row/col)."""
+    if not len(pts):
+        return
+    norm = np.hypot(*point_residuals(rpcs, pts).T)
+    diagonal = np.hypot(*np.asarray(shapes, float)[pts.image].T)
+    if not (norm <= diagonal).any():  # NaN (no projection) counts as far
+        raise InputFileError(f"{path}: {option}: no point projects within an image's size of its measured "
+                             f"position (median residual {np.nanmedian(norm) if np.isfinite(norm).any() else np.nan:.3g} px): "
+                             "they lie elsewhere than these images; check lon/lat, h and row/col")
 
 
 def _tie_relative(rpcs, tracks: Tracks | None) -> float | None:

@@ -13,9 +13,9 @@ from tiledsm.errors import (
     NoOverlapError,
 )
 from tiledsm.plan.core import (
-    InputInfo, Plan, existing_file, format_bounds, new_plan, overlap_fraction, raster_header, readable_raster, store_raster,
+    InputInfo, Plan, existing_file, format_bounds, new_plan, overlap_fraction, raster_header, readable_raster,
 )
-from tiledsm.plan.dsm import grid_text, refuse_or_warn
+from tiledsm.plan.dsm import refuse_or_warn
 from tiledsm.plan.recipes import polygons_touch, check_sr_weights
 
 
@@ -29,11 +29,13 @@ def plan_sr(
     weights: str | None = None,
     chunk: int = 512,
     cluster=None,
+    overwrite: bool = False,
     **sr_options: Any,
 ) -> Plan:
     """Plan ``tiledsm sr``: the image and its camera open, the output is a
     GeoTIFF or zarr path in an existing folder, ``model`` has weights at
-    ``scale`` (or ``weights`` exists), and the lazy tiled graph
+    ``scale`` (or x2 weights applied repeatedly, or ``weights`` exists),
+    an existing OUTPUT is replaced only with ``overwrite``, and the lazy tiled graph
     (:func:`tiledsm.sr.infer.super_resolve` with ``sr_options``: device,
     blur_sigma, noise) is built and counted; :attr:`Plan.product` is it.
 
@@ -41,9 +43,6 @@ def plan_sr(
     -------
     Plan
     """
-    from tiledsm.io import open_scene
-    from tiledsm.sr.infer import super_resolve
-
     plan = new_plan("sr", output, cluster, folder=False)
     out = plan.out
     if chunk < 16:
@@ -54,7 +53,12 @@ def plan_sr(
         raise InvalidOptionError(f"{out}: OUTPUT: must end in .tif/.tiff or .zarr")
     if not out.parent.is_dir():
         raise InputFileError(f"{out}: OUTPUT: folder {out.parent} does not exist")
+    if out.exists() and not overwrite:
+        raise InvalidOptionError(f"{out}: OUTPUT: exists; pass --overwrite to replace it")
     src = readable_raster(existing_file(image, "INPUT"), "INPUT")
+    from tiledsm.io import open_scene
+    from tiledsm.sr.infer import super_resolve  # imports torch: after the cheap checks
+
     scene = open_scene(src, chunks=chunk)
     bit_depth = sr_options.pop("bit_depth", None)
     if bit_depth is not None:
@@ -68,15 +72,22 @@ def plan_sr(
         plan.inputs.append(InputInfo("--weights", weights))
         net = load_weights(weights, sr_options.get("device", "cpu"))
     else:
-        check_sr_weights([model], scale, "--scale", "pass --weights FILE (see `tiledsm train-sr`) or use --model bicubic")
+        from tiledsm.sr.registry import weight_chain
+
+        if weight_chain(model, scale) is None:  # neither native weights nor x2 weights to apply repeatedly
+            check_sr_weights([model], scale, "--scale", "pass --weights FILE (see `tiledsm train-sr`), "
+                                                         "a power-of-two scale or --model bicubic")
         net = model
     plan.product = super_resolve(scene, net, scale, **sr_options)
+    if plan.product.attrs.get("sr_scheme"):
+        plan.notes.append(f"{model} has no native x{scale} weights: its {plan.product.attrs['sr_scheme']} "
+                          "(a substitute, recorded in the output's sr_scheme tag)")
     ny, nx = plan.product.sizes["y"], plan.product.sizes["x"]
     nby, nbx = -(-scene.sizes["y"] // chunk), -(-scene.sizes["x"] // chunk)
     plan.grid = f"{ny} x {nx} px output (x{scale}), tiles of {chunk} input px: {nby} x {nbx} = {nby * nbx}"
     plan.tasks = len(plan.product.data.__dask_graph__())
     plan.notes.append("memory per worker is not estimated for SR")
-    plan.reuse = f"nothing: {out} is written whole" + (" (replacing the existing file)" if out.exists() else "")
+    plan.reuse = f"nothing: {out} is written whole" + (" (replacing the existing one: --overwrite)" if out.exists() else "")
     return plan
 
 
@@ -101,14 +112,14 @@ def plan_compare(ref: str, other: str, out: str, *, stable_mask: str | None, chu
         heads[name] = (p, h)
         plan.inputs.append(InputInfo(name, p, f"{h['shape'][0]} x {h['shape'][1]} cells of {h['res']:g}, {h['crs']}"))
     (ref_p, rh), (oth_p, oh) = heads["REF"], heads["OTHER"]
-    from tiledsm.io.grids import grid_like
+    from tiledsm.compare.align import ReferenceGrid, open_dsm
 
-    grid = grid_like(store_raster(ref_p, "REF") if Path(ref_p).is_dir() else ref_p, chunk=chunks)
+    # the comparison runs on REF's own grid, geographic CRSs included: no projected DSM grid is made
+    grid = ReferenceGrid.of(open_dsm(ref_p, chunks), chunks)
     frac = overlap_fraction(oh["bounds"], oh["crs"], grid)
     refuse_or_warn(plan, frac, NoOverlapError(f"{oth_p}: OTHER: has no ground in common with REF {ref_p}"),
                     f"{oth_p}: OTHER covers only {frac:.0%} of REF's grid")
-    nby, nbx = grid.numblocks
-    plan.grid = grid_text(grid) + f"; OTHER covers {frac:.0%} of it"
+    plan.grid = grid.describe() + f"; OTHER covers {frac:.0%} of it"
     if stable_mask:
         from tiledsm.compare.stable import exclusion_mask, read_polygons
 

@@ -47,7 +47,7 @@ from torch import nn
 from tiledsm.sr.models.base import SRModel
 from tiledsm.sr.models.bicubic import Bicubic
 from tiledsm.sr.models.srmd import check_blur
-from tiledsm.sr.registry import SRError, load_pretrained
+from tiledsm.sr.registry import SRError, chain_scheme, load_pretrained, weight_chain
 
 __all__ = [
     "sr_array", "super_resolve", "resolve_model", "value_scale_for", "stretch_scale", "NORMALISATIONS",
@@ -301,6 +301,10 @@ def super_resolve(
     """
     if scene.ndim not in (2, 3):
         raise SRError(f"super_resolve: scene must have dims (y, x) or (band, y, x), got {scene.dims}")
+    chain = weight_chain(model, scale) if isinstance(model, str) else None
+    if chain is not None and len(chain) > 1:
+        return _super_resolve_chain(scene, model, chain, device=device, blur_sigma=blur_sigma, noise=noise,
+                                    value_scale=value_scale, normalisation=normalisation, chunks=chunks)
     net = resolve_model(model, scale, device)
     if normalisation not in NORMALISATIONS:
         raise SRError(f"normalisation must be one of {sorted(NORMALISATIONS)}, got {normalisation!r}")
@@ -364,6 +368,28 @@ def super_resolve(
         attrs.update(sr_blur_sigma=check_blur(blur_sigma), sr_noise=float(noise or 0.0))
     result = xr.DataArray(out, dims=scene.dims, coords=coords, attrs=attrs, name=scene.name)
     return _scaled_georeference(scene, result, scale)
+
+
+def _super_resolve_chain(scene: xr.DataArray, model: str, chain: tuple[int, ...], *, chunks: int | None,
+                         value_scale: float | None, normalisation: str, **kw) -> xr.DataArray:
+    """:func:`super_resolve` by a network without native weights for the
+    product of ``chain``: its shipped weights applied once per factor
+    (:func:`tiledsm.sr.registry.weight_chain`), a stated substitute. Every
+    pass divides by the first pass's ``value_scale``; later passes are
+    rechunked to the first pass's input tile so a tile's memory does not
+    grow with each pass. The RPC and geotransform compose exactly
+    (``RPC.scaled(a).scaled(b) == RPC.scaled(a * b)``). ``attrs`` gain
+    ``sr_scheme`` (e.g. ``"x2 applied 2 times"``); ``sr_scale`` is the total."""
+    if chunks is None and isinstance(scene.data, da.Array):
+        chunks = int(scene.data.chunks[-1][0])
+    out = super_resolve(scene, model, chain[0], value_scale=value_scale, normalisation=normalisation,
+                        chunks=chunks, **kw)
+    first = dict(out.attrs)
+    for s in chain[1:]:
+        out = super_resolve(out, model, s, value_scale=first["sr_value_scale"], chunks=chunks, **kw)
+    out.attrs.update(sr_scale=int(np.prod(chain)), sr_normalisation=first["sr_normalisation"],
+                     sr_scheme=chain_scheme(chain))
+    return out
 
 
 def _scaled_georeference(scene: xr.DataArray, result: xr.DataArray, scale: int) -> xr.DataArray:

@@ -20,7 +20,8 @@ import torch
 from tiledsm.errors import TiledsmError
 from tiledsm.sr.models import SRCNN, SRMD, VDSR, Bicubic, OfficialSRMD, SRModel
 
-__all__ = ["SRError", "Registry", "MODELS", "build", "load_pretrained", "load_weights", "available_weights", "WEIGHTS_DIR"]
+__all__ = ["SRError", "Registry", "MODELS", "build", "load_pretrained", "load_weights", "available_weights", "weight_chain",
+           "chain_scheme", "WEIGHTS_DIR"]
 
 #: folder of the shipped state_dicts and their cards
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
@@ -102,6 +103,12 @@ def weight_chain(name: str, scale: int, folder: Path = WEIGHTS_DIR) -> tuple[int
     if scale > 2 and scale == 1 << n and weights_path(name, 2, folder).exists():
         return (2,) * n
     return None
+
+
+def chain_scheme(chain: tuple[int, ...]) -> str | None:
+    """How a :func:`weight_chain` reaches its scale, for attrs and logs:
+    ``"x2 applied 2 times"``, or ``None`` for native weights (one pass)."""
+    return None if len(chain) == 1 else f"x{chain[0]} applied {len(chain)} times"
 
 
 def available_weights(folder: Path = WEIGHTS_DIR) -> list[tuple[str, int]]:

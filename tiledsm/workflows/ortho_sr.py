@@ -278,10 +278,10 @@ def cnn_ortho(lr: np.ndarray, model: str, scale: int, *, srmd_blur_sigma: float 
 def cnn_scheme(model: str, scale: int) -> str | None:
     """How a CNN row reaches ``scale``: ``"x2 applied twice"`` (or more)
     when it has no native weights, ``None`` when it has."""
-    from tiledsm.sr.registry import weight_chain
+    from tiledsm.sr.registry import chain_scheme, weight_chain
 
     chain = weight_chain(model, scale)
-    return None if chain is None or len(chain) == 1 else f"x{chain[0]} applied {len(chain)} times"
+    return None if chain is None else chain_scheme(chain)
 
 
 def align_to(truth: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
