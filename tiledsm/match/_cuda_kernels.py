@@ -48,6 +48,8 @@ else:
         return libdevice.fmul_rn(x, y)
 
 
+# The lattice lookups of tiledsm.match.sampling, with math.floor: numba's
+# CUDA target has no numpy.floor (the CPU functions cannot be reused).
 @dev
 def lattice_cell(g, stride, n0, n):
     # tiledsm.match.sampling.lattice_cell
@@ -194,11 +196,44 @@ def zncc(s_a, s_b, s_aa, s_bb, s_ab, inv_n, eps):
     return f32(math.nan)
 
 
+@dev
+def pair_zncc(samp, u, w, lo, i, j, half, label, inv_n, eps):
+    """``1 - ZNCC`` of views ``u`` and ``w`` over the window of cell ``[i,
+    j]`` at ``label``: column sums of the rows top to bottom, then the
+    columns left to right (tiledsm.match.sweep._column_sums, _zncc_row)."""
+    sa = 0.0
+    sb = 0.0
+    saa = 0.0
+    sbb = 0.0
+    sab = 0.0
+    for c in range(j - half, j + half + 1):
+        c0 = 0.0
+        c1 = 0.0
+        c00 = 0.0
+        c11 = 0.0
+        c01 = 0.0
+        for r in range(i - half, i + half + 1):
+            off = label - lo[r, c]
+            x = f64(samp[u, r, c, off])
+            y = f64(samp[w, r, c, off])
+            c0 += x
+            c00 += mul(x, x)
+            c1 += y
+            c11 += mul(y, y)
+            c01 += mul(x, y)
+        sa += c0
+        sb += c1
+        saa += c00
+        sbb += c11
+        sab += c01
+    return zncc(sa, sb, saa, sbb, sab, inv_n, eps)
+
+
 @cuda.jit(cache=True)
 def zncc_kernel(samp, lo, base, nvalid, half, pair_u, pair_v, pair_w, eps, vol):
     """``vol[i, j, k]`` of the cells whose window lies in the block
-    (tiledsm.match.sweep._zncc_row): window sums at the candidate's
-    label, columns of rows top to bottom, columns left to right."""
+    (tiledsm.match.sweep._zncc_row): one pair's cost, or the pairs'
+    weighted mean with three or more views."""
     ny, nx, nd = vol.shape
     t = cuda.grid(1)
     if t >= ny * nx * nd:
@@ -212,69 +247,14 @@ def zncc_kernel(samp, lo, base, nvalid, half, pair_u, pair_v, pair_w, eps, vol):
     wsz = 2 * half + 1
     inv_n = 1.0 / (wsz * wsz)
     label = base[i, j] + k
-    nv = samp.shape[0]
-    npairs = pair_u.shape[0]
-    if nv == 2:
-        sa = 0.0
-        sb = 0.0
-        saa = 0.0
-        sbb = 0.0
-        sab = 0.0
-        for c in range(j - half, j + half + 1):
-            c0 = 0.0
-            c1 = 0.0
-            c00 = 0.0
-            c11 = 0.0
-            c01 = 0.0
-            for r in range(i - half, i + half + 1):
-                off = label - lo[r, c]
-                x = f64(samp[0, r, c, off])
-                y = f64(samp[1, r, c, off])
-                c0 += x
-                c00 += mul(x, x)
-                c1 += y
-                c11 += mul(y, y)
-                c01 += mul(x, y)
-            sa += c0
-            sb += c1
-            saa += c00
-            sbb += c11
-            sab += c01
-        vol[i, j, k] = zncc(sa, sb, saa, sbb, sab, inv_n, eps)
+    if samp.shape[0] == 2:
+        vol[i, j, k] = pair_zncc(samp, 0, 1, lo, i, j, half, label, inv_n, eps)
         return
-    # three or more views: each pair's ZNCC from its window sums,
-    # weighted (float32, as the compiled kernel's totals)
+    # weighted in float32, as the compiled kernel's totals
     tot = f32(0.0)
     cnt = f32(0.0)
-    for p in range(npairs):
-        u = pair_u[p]
-        w = pair_v[p]
-        sa = 0.0
-        sb = 0.0
-        saa = 0.0
-        sbb = 0.0
-        sab = 0.0
-        for c in range(j - half, j + half + 1):
-            c0 = 0.0
-            c1 = 0.0
-            c00 = 0.0
-            c11 = 0.0
-            c01 = 0.0
-            for r in range(i - half, i + half + 1):
-                off = label - lo[r, c]
-                x = f64(samp[u, r, c, off])
-                y = f64(samp[w, r, c, off])
-                c0 += x
-                c00 += mul(x, x)
-                c1 += y
-                c11 += mul(y, y)
-                c01 += mul(x, y)
-            sa += c0
-            sb += c1
-            saa += c00
-            sbb += c11
-            sab += c01
-        cst = zncc(sa, sb, saa, sbb, sab, inv_n, eps)
+    for p in range(pair_u.shape[0]):
+        cst = pair_zncc(samp, pair_u[p], pair_v[p], lo, i, j, half, label, inv_n, eps)
         if cst == cst:
             tot += mul32(pair_w[p], cst)
             cnt += pair_w[p]
