@@ -80,8 +80,7 @@ def displace_recipe(args: argparse.Namespace):
     """The ``pipeline: displace`` recipe of the command's options, every
     path absolute; a bad value is an :class:`~tiledsm.errors.InvalidOptionError`
     naming the option."""
-    from tiledsm.cli.dsm import _absolute
-    from tiledsm.cli.run import recipe_of_options
+    from tiledsm.cli.run import absolute_path, recipe_of_options
     from tiledsm.errors import InvalidOptionError
     from tiledsm.workflows.displace import DisplaceRecipe
 
@@ -92,15 +91,16 @@ def displace_recipe(args: argparse.Namespace):
                     "max_displacement": args.max_displacement, "refine_search": args.refine_search,
                     "min_quality": args.min_quality, "min_peak": args.min_peak, "min_texture": args.min_texture,
                     "plane": not args.no_plane, "stripes": "rows" if args.stripes else None}
-    grid = {"like": _absolute(args.like), "resolution": args.resolution, "chunk": args.chunk}
+    grid = {"like": absolute_path(args.like), "resolution": args.resolution, "chunk": args.chunk}
     return recipe_of_options(DisplaceRecipe, {
         "pipeline": "displace",
         "name": Path(args.out).name,
-        "input": {"pre": _absolute(args.pre), "post": _absolute(args.post), "dsm_pre": _absolute(args.dsm_pre),
-                  "dsm_post": _absolute(args.dsm_post), "kernel": args.kernel},
+        "input": {"pre": absolute_path(args.pre), "post": absolute_path(args.post),
+                  "dsm_pre": absolute_path(args.dsm_pre), "dsm_post": absolute_path(args.dsm_post),
+                  "kernel": args.kernel},
         "grid": {k: v for k, v in grid.items() if v is not None},
         "displacement": displacement,
-        "stable_mask": _absolute(args.stable_mask),
+        "stable_mask": absolute_path(args.stable_mask),
         "fault_trace": None if ft is None else [(ft[0], ft[1]), (ft[2], ft[3])],
         "output": {"cog": not args.no_cog, "quicklook": not args.no_quicklook},
     }, OPTION_OF_FIELD)

@@ -47,29 +47,25 @@ OPTION_OF_FIELD = {
 }
 
 
-def _absolute(path: str | None) -> str | None:
-    return None if path is None else str(Path(path).expanduser().resolve())
-
-
 def dsm_recipe(args: argparse.Namespace):
     """The ``pipeline: dsm`` recipe of the command's options, every path
     absolute; a bad value is an :class:`~tiledsm.errors.InvalidOptionError`
     naming the option."""
-    from tiledsm.cli.run import recipe_of_options
+    from tiledsm.cli.run import absolute_path, recipe_of_options
     from tiledsm.errors import InvalidOptionError
     from tiledsm.workflows.dsm import DSMRecipe
 
     if len(args.images) < 2:
         raise InvalidOptionError(f"IMAGES: at least two images are needed, got {len(args.images)}")
-    grid = dict(like=_absolute(args.like), crs=args.crs, resolution=args.resolution, bounds=args.bounds, chunk=args.chunk)
+    grid = dict(like=absolute_path(args.like), crs=args.crs, resolution=args.resolution, bounds=args.bounds, chunk=args.chunk)
     return recipe_of_options(DSMRecipe, {
         "pipeline": "dsm",
         "name": Path(args.out).name,
-        "input": {"images": [_absolute(p) for p in args.images], "reference": _absolute(args.reference)},
+        "input": {"images": [absolute_path(p) for p in args.images], "reference": absolute_path(args.reference)},
         "grid": {k: v for k, v in grid.items() if v is not None},
         "match": {"levels": args.levels, "height_range": args.height_range,
                   "params": {} if args.device == "cpu" else {"kernel": "cuda", "device": args.device}},
-        "output": {"geoid": _absolute(args.geoid)},
+        "output": {"geoid": absolute_path(args.geoid)},
     }, OPTION_OF_FIELD)
 
 

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 __all__ = [
     "add_parser", "add_cluster_arguments", "add_overwrite_argument", "add_plan_arguments", "cluster_config",
-    "print_warnings", "print_summary", "plan_and_run", "recipe_of_options",
+    "absolute_path", "print_warnings", "print_summary", "plan_and_run", "recipe_of_options",
 ]
 
 
@@ -176,6 +177,13 @@ def print_summary(metrics: dict) -> None:
 
     add("", metrics)
     Console().print(table)
+
+
+def absolute_path(path: str | None) -> str | None:
+    """``path`` made absolute (``~`` expanded, links resolved); ``None``
+    stays ``None``: a command's recipe means the same files to the workers
+    of an external cluster, whatever their working folder."""
+    return None if path is None else str(Path(path).expanduser().resolve())
 
 
 def recipe_of_options(model, data: dict, option_of_field: dict[str, str]):
