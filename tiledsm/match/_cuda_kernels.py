@@ -79,6 +79,17 @@ def lattice_segment(tt, k0, nh):
 
 
 @dev
+def item(t, nx, depth):
+    """Cell ``(i, j)`` and item ``k`` of flat thread index ``t`` over a
+    ``(ny, nx, depth)`` layout (items fastest: neighbouring threads read
+    neighbouring memory)."""
+    k = t % depth
+    cell = t // depth
+    i = cell // nx
+    return i, cell - i * nx, k
+
+
+@dev
 def bilinear(lat, v, t, i0, j0, w00, w01, w10, w11):
     # tiledsm.match.sweep._bilinear
     return (mul(w00, lat[v, t, i0, j0]) + mul(w01, lat[v, t, i0, j0 + 1]) + mul(w10, lat[v, t, i0 + 1, j0])
@@ -145,14 +156,10 @@ def sample_kernel(imgs, shapes, lat_r, lat_c, stride, k0, dh, href, step, gi0, g
     """``out[v, i, j, k]``: view ``v``'s sample of cell ``[i, j]`` at
     label ``lo[i, j] + k`` (tiledsm.match.sweep._sample_row)."""
     ny, nx = href.shape
-    ns = out.shape[3]
     t = cuda.grid(1)
-    if t >= ny * nx * ns:
+    if t >= ny * nx * out.shape[3]:
         return
-    k = t % ns
-    cell = t // ns
-    i = cell // nx
-    j = cell - i * nx
+    i, j, k = item(t, nx, out.shape[3])
     if lo[i, j] + k > hi[i, j]:
         return
     nh = lat_r.shape[1]
@@ -238,10 +245,7 @@ def zncc_kernel(samp, lo, base, nvalid, half, pair_u, pair_v, pair_w, eps, vol):
     t = cuda.grid(1)
     if t >= ny * nx * nd:
         return
-    k = t % nd
-    cell = t // nd
-    i = cell // nx
-    j = cell - i * nx
+    i, j, k = item(t, nx, nd)
     if k >= nvalid[i, j] or i < half or i >= ny - half or j < half or j >= nx - half:
         return
     wsz = 2 * half + 1
@@ -269,10 +273,7 @@ def fill_kernel(nvalid, vol):
     t = cuda.grid(1)
     if t >= ny * nx * nd:
         return
-    k = t % nd
-    cell = t // nd
-    i = cell // nx
-    j = cell - i * nx
+    i, j, k = item(t, nx, nd)
     vol[i, j, k] = f32(math.nan) if k < nvalid[i, j] else masked
 
 
