@@ -540,8 +540,8 @@ def _message_options() -> list[tuple[str, str, str]]:
             scope = node.name
         if isinstance(node, ast.Call):
             name = getattr(node.func, "attr", getattr(node.func, "id", ""))
-            if name in ("add_argument", "add_parser", "ArgumentParser"):
-                return
+            if name in ("add_argument", "add_parser", "ArgumentParser", "option"):
+                return  # declarations; a spec's option() is checked by test_every_spec_option_exists_in_its_command
             for kw in node.keywords:
                 if kw.arg in ("help", "description"):
                     kw.value = ast.Constant("")
@@ -571,6 +571,22 @@ def test_every_option_a_message_names_exists_in_the_command_help():
             continue
         problems += [f"{module}:{function}: `tiledsm {c}` has no {option}" for c in commands if option not in _help(c)]
     assert not problems, "\n".join(problems)
+
+
+@pytest.mark.parametrize("command, model", [
+    ("dsm", "tiledsm.workflows.dsm:DSMRecipe"), ("displace", "tiledsm.workflows.displace:DisplaceRecipe")])
+def test_every_spec_option_exists_in_its_command(command, model):
+    """The options a command's spec names in its fields' metadata (what its
+    errors print, :func:`tiledsm.recipes.options_of`) are the command's."""
+    import importlib
+
+    from tiledsm.recipes import options_of
+
+    module, name = model.split(":")
+    options = options_of(getattr(importlib.import_module(module), name))
+    assert len(options) >= 8
+    missing = [o for f, spelled in options.items() for o in spelled.split("/") if o.startswith("--") and o not in _help(command)]
+    assert not missing, f"tiledsm {command} --help lacks {missing}"
 
 
 # ------------------------------------------------------------------ memory

@@ -26,6 +26,7 @@ from pydantic import BaseModel, ValidationError
 
 from tiledsm.cluster import ClusterConfig
 from tiledsm.errors import RecipeError
+from tiledsm.plan.dsm import plan_dsm
 from tiledsm.recipes import dump_resolved, format_errors, read_recipe
 from tiledsm.workflows.common import setup_log, withdraw_products
 from tiledsm.workflows.deformation import DeformationRecipe, run_deformation
@@ -42,15 +43,23 @@ __all__ = ["Pipeline", "PIPELINES", "load_recipe", "run_recipe"]
 
 @dataclass(frozen=True)
 class Pipeline:
-    """A recipe model and the function that runs it."""
+    """A recipe model, the function that runs it and, where the stage plans
+    more than the checks every recipe gets, the function that plans it.
+
+    ``plan(plan, recipe, cluster, *, overwrite, names)`` fills the
+    :class:`~tiledsm.plan.Plan` that :func:`tiledsm.plan.plan_recipe`
+    made (workers, scheduler and the folder's lock already checked) and
+    returns it; ``names`` (:class:`~tiledsm.plan.FieldNames`) says how the
+    user spelled each input (command options or recipe fields)."""
 
     recipe: type[BaseModel]
     run: Callable[..., dict]
+    plan: Callable[..., Any] | None = None
 
 
 #: every pipeline a recipe may name
 PIPELINES: dict[str, Pipeline] = {
-    "dsm": Pipeline(DSMRecipe, run_dsm),
+    "dsm": Pipeline(DSMRecipe, run_dsm, plan=plan_dsm),
     "sr_dsm": Pipeline(SRDSMRecipe, run_sr_dsm),
     "deformation": Pipeline(DeformationRecipe, run_deformation),
     "ortho_sr": Pipeline(OrthoSRRecipe, run_ortho_sr),

@@ -25,7 +25,35 @@ from tiledsm.errors import RecipeError
 __all__ = [
     "StrictModel", "SynthInput", "InputSpec", "GridSpec", "MatchSpec", "JobQueueSpec", "ClusterSpec", "OutputSpec",
     "grid_from_spec", "dsm_params", "check_size", "load_cluster", "read_recipe", "format_errors", "dump_resolved",
+    "option", "options_of",
 ]
+
+
+def option(name: str) -> dict[str, str]:
+    """A field's command-line spelling, for ``Field(json_schema_extra=...)``:
+    the spec is the one place that says which option sets a field, and
+    errors found validating a command's options name that option
+    (:func:`options_of`, :func:`tiledsm.cli.run.recipe_of_options`)."""
+    return {"option": name}
+
+
+def options_of(model: type[BaseModel], prefix: str = "") -> dict[str, str]:
+    """``{field path: option}`` of every field of ``model`` (sub-models
+    walked, ``Optional`` ones too) whose metadata names an option
+    (:func:`option`); a sub-model field's own option covers its model-level
+    checks (e.g. ``grid`` -> ``--like/--bounds``)."""
+    import typing
+
+    found: dict[str, str] = {}
+    for name, info in model.model_fields.items():
+        path = f"{prefix}{name}"
+        extra = info.json_schema_extra if isinstance(info.json_schema_extra, dict) else {}
+        if "option" in extra:
+            found[path] = extra["option"]
+        for arg in (info.annotation, *typing.get_args(info.annotation)):
+            if isinstance(arg, type) and issubclass(arg, BaseModel):
+                found.update(options_of(arg, path + "."))
+    return found
 
 
 class StrictModel(BaseModel):
@@ -51,9 +79,10 @@ class InputSpec(StrictModel):
     cameras in their tags, a sidecar, or ``rpcs``)."""
 
     synth: Optional[SynthInput] = None
-    images: Optional[list[str]] = Field(None, min_length=2)
+    images: Optional[list[str]] = Field(None, min_length=2, json_schema_extra=option("IMAGES"))
     rpcs: Optional[list[Optional[str]]] = None
-    reference: Optional[str] = Field(None, description="reference DSM for metrics (GeoTIFF)")
+    reference: Optional[str] = Field(None, description="reference DSM for metrics (GeoTIFF)",
+                                     json_schema_extra=option("--reference"))
 
     @model_validator(mode="after")
     def _one_source(self):
@@ -67,11 +96,13 @@ class InputSpec(StrictModel):
 class GridSpec(StrictModel):
     """Output ground grid; everything optional (derived from the views)."""
 
-    like: Optional[str] = Field(None, description="align to this raster's grid (CRS, transform, shape)")
-    crs: Optional[str] = None
-    resolution: Optional[float] = Field(None, gt=0, description="metres")
-    bounds: Optional[tuple[float, float, float, float]] = Field(None, description="xmin ymin xmax ymax, grid CRS")
-    chunk: int = Field(512, ge=32, description="chunk side, cells")
+    like: Optional[str] = Field(None, description="align to this raster's grid (CRS, transform, shape)",
+                                json_schema_extra=option("--like"))
+    crs: Optional[str] = Field(None, json_schema_extra=option("--crs"))
+    resolution: Optional[float] = Field(None, gt=0, description="metres", json_schema_extra=option("--resolution"))
+    bounds: Optional[tuple[float, float, float, float]] = Field(None, description="xmin ymin xmax ymax, grid CRS",
+                                                                json_schema_extra=option("--bounds"))
+    chunk: int = Field(512, ge=32, description="chunk side, cells", json_schema_extra=option("--chunk"))
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -85,11 +116,13 @@ class GridSpec(StrictModel):
 class MatchSpec(StrictModel):
     """Dense matching parameters (see :class:`tiledsm.match.sgvll.SGVLLParams`)."""
 
-    levels: Optional[int] = Field(None, ge=1, le=6, description="pyramid levels; default: from the height range")
-    height_range: Optional[tuple[float, float]] = None
+    levels: Optional[int] = Field(None, ge=1, le=6, description="pyramid levels; default: from the height range",
+                                  json_schema_extra=option("--levels"))
+    height_range: Optional[tuple[float, float]] = Field(None, json_schema_extra=option("--height-range"))
     height_margin: float = Field(10.0, ge=0)
     relative_correction: bool = True
-    params: dict[str, Any] = Field(default_factory=dict, validate_default=True, description="SGVLLParams fields")
+    params: dict[str, Any] = Field(default_factory=dict, validate_default=True, description="SGVLLParams fields",
+                                   json_schema_extra=option("--device"))
 
     @field_validator("params")
     @classmethod

@@ -64,18 +64,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-#: recipe field paths of the options, for messages
-OPTION_OF_FIELD = {
-    "input.pre": "PRE", "input.post": "POST", "input.dsm_pre": "--dsm-pre", "input.dsm_post": "--dsm-post",
-    "input.kernel": "--kernel", "grid.like": "--like", "grid.resolution": "--resolution",
-    "grid.chunk": "--chunk", "stable_mask": "--stable-mask", "fault_trace": "--fault-trace",
-    "displacement.window": "--window", "displacement.step": "--step", "displacement.search": "--search",
-    "displacement.max_displacement": "--max-displacement", "displacement.refine_search": "--refine-search",
-    "displacement.min_quality": "--min-quality", "displacement.min_peak": "--min-peak",
-    "displacement.min_texture": "--min-texture", "displacement.stripes": "--stripes",
-}
-
-
 def displace_recipe(args: argparse.Namespace):
     """The ``pipeline: displace`` recipe of the command's options, every
     path absolute; a bad value is an :class:`~tiledsm.errors.InvalidOptionError`
@@ -103,7 +91,7 @@ def displace_recipe(args: argparse.Namespace):
         "stable_mask": absolute_path(args.stable_mask),
         "fault_trace": None if ft is None else [(ft[0], ft[1]), (ft[2], ft[3])],
         "output": {"cog": not args.no_cog, "quicklook": not args.no_quicklook},
-    }, OPTION_OF_FIELD)
+    })
 
 
 def run(args: argparse.Namespace) -> int:
@@ -116,9 +104,10 @@ def run(args: argparse.Namespace) -> int:
     # the correlation's kernels are numpy FFTs and nogil numba, reads are GDAL: threads of this process
     cluster = cluster_config(args)
     recipe = displace_recipe(args)
-    names = {f: o for f, o in OPTION_OF_FIELD.items() if f in ("input.pre", "input.post", "input.dsm_pre",
-                                                               "input.dsm_post", "grid.like", "stable_mask",
-                                                               "fault_trace")}
+    from tiledsm.recipes import options_of
+    from tiledsm.workflows.displace import DisplaceRecipe, FIELD_NAMES
+
+    names = {f: o for f, o in options_of(DisplaceRecipe).items() if f in FIELD_NAMES}
     plan = plan_displace(recipe, args.out, cluster, overwrite=args.overwrite, names=names)
     print_warnings("displace", plan.warnings)
     if args.dry_run:

@@ -38,15 +38,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-#: recipe field paths of the options, for messages
-OPTION_OF_FIELD = {
-    "input.images": "IMAGES", "input.reference": "--reference", "grid.like": "--like", "grid.crs": "--crs",
-    "grid.resolution": "--resolution", "grid.bounds": "--bounds", "grid.chunk": "--chunk", "grid": "--like/--bounds",
-    "match.levels": "--levels", "match.height_range": "--height-range", "match.params": "--device",
-    "output.geoid": "--geoid",
-}
-
-
 def dsm_recipe(args: argparse.Namespace):
     """The ``pipeline: dsm`` recipe of the command's options, every path
     absolute; a bad value is an :class:`~tiledsm.errors.InvalidOptionError`
@@ -66,7 +57,7 @@ def dsm_recipe(args: argparse.Namespace):
         "match": {"levels": args.levels, "height_range": args.height_range,
                   "params": {} if args.device == "cpu" else {"kernel": "cuda", "device": args.device}},
         "output": {"geoid": absolute_path(args.geoid)},
-    }, OPTION_OF_FIELD)
+    })
 
 
 def run(args: argparse.Namespace) -> int:

@@ -186,19 +186,25 @@ def absolute_path(path: str | None) -> str | None:
     return None if path is None else str(Path(path).expanduser().resolve())
 
 
-def recipe_of_options(model, data: dict, option_of_field: dict[str, str]):
+def recipe_of_options(model, data: dict):
     """``model`` validated from a command's options gathered as a recipe
     (``data``); a bad value is an :class:`~tiledsm.errors.InvalidOptionError`
-    naming the option of the field at fault (``option_of_field``: recipe
-    field path -> option, a field's sub-fields included)."""
+    naming the option of the field at fault, as the model's field metadata
+    spells it (:func:`tiledsm.recipes.options_of`; a field's sub-fields
+    included)."""
     from pydantic import ValidationError
 
     from tiledsm.errors import InvalidOptionError
+    from tiledsm.recipes import options_of
+
+    option_of_field = options_of(model)
 
     try:
         return model.model_validate(data)
     except ValidationError as exc:
         err = exc.errors()[0]
         loc = ".".join(str(p) for p in err["loc"])
-        option = next((o for f, o in option_of_field.items() if loc == f or loc.startswith(f + ".")), loc)
+        # the deepest field with an option that holds the error's location
+        option = next((o for f, o in sorted(option_of_field.items(), key=lambda fo: -len(fo[0]))
+                       if loc == f or loc.startswith(f + ".")), loc)
         raise InvalidOptionError(f"{option}: {err['msg'].removeprefix('Value error, ')}") from None

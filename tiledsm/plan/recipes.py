@@ -7,7 +7,6 @@ from typing import Any, Sequence
 
 from tiledsm.errors import InvalidOptionError, NoOverlapError
 from tiledsm.plan.core import FieldNames, InputInfo, Limits, Plan, RECIPE_NAMES, existing_file, new_plan
-from tiledsm.plan.dsm import plan_dsm
 
 
 # --------------------------------------------------------------------------- recipes
@@ -22,14 +21,18 @@ def plan_recipe(
     command: str = "run",
 ) -> Plan:
     """Plan any recipe into the folder ``out`` (made absolute): the workers
-    and the folder's lock first, then a full plan for ``pipeline: dsm``
-    (:func:`plan_dsm`); for the workflows (``sr_dsm``, ``deformation``,
-    ``train_sr``) the checks that need no stage to run -- inputs exist,
-    SR weights exist for ``sr.scale``, a stable mask overlaps the scene --
-    while their stages plan their own grids when they run."""
+    and the folder's lock first, then the plan of the recipe's pipeline
+    (:attr:`tiledsm.pipelines.Pipeline.plan`, e.g. :func:`tiledsm.plan.plan_dsm`); for
+    a pipeline without one (``sr_dsm``, ``deformation``, ``train_sr``) the
+    checks that need no stage to run -- inputs exist, SR weights exist for
+    ``sr.scale``, a stable mask overlaps the scene -- while their stages
+    plan their own grids when they run."""
+    from tiledsm.pipelines import PIPELINES
+
     plan = new_plan(command, out, cluster, limits=limits, workers=names.workers, scheduler=names.scheduler)
-    if recipe.pipeline == "dsm":
-        return plan_dsm(plan, recipe, cluster, overwrite=overwrite, names=names)
+    stage_plan = PIPELINES[recipe.pipeline].plan
+    if stage_plan is not None:
+        return stage_plan(plan, recipe, cluster, overwrite=overwrite, names=names)
     plan.notes.append(f"pipeline {recipe.pipeline}: each stage plans its grid, graph and memory when it runs")
     plan.reuse = "stores of an earlier run with the same fingerprint (checked by each stage)"
     for role, path in _recipe_files(recipe.model_dump(), ""):

@@ -55,7 +55,7 @@ from typing import Literal, Optional
 import numpy as np
 from pydantic import Field
 
-from tiledsm.recipes import ClusterSpec, OutputSpec, StrictModel
+from tiledsm.recipes import ClusterSpec, OutputSpec, StrictModel, option
 from tiledsm.workflows.displacement import CorrelationSpec
 
 __all__ = ["DisplaceRecipe", "plan_displace", "run_displace"]
@@ -67,20 +67,20 @@ COMPONENTS = ("dE", "dN", "dU")
 
 class DisplaceInput(StrictModel):
     pre: str = Field(..., description="pre-event orthoimage: GeoTIFF/COG or tiledsm ortho .zarr, projected CRS; or, "
-                     "with dsm_pre, an image with its camera (RPC tags or sidecar)")
+                     "with dsm_pre, an image with its camera (RPC tags or sidecar)", json_schema_extra=option('PRE'))
     post: str = Field(..., description="post-event orthoimage: any projected CRS, cell size or origin; or, with "
-                      "dsm_post, an image with its camera")
+                      "dsm_post, an image with its camera", json_schema_extra=option('POST'))
     dsm_pre: Optional[str] = Field(None, description="DSM of the pre epoch: pre is orthorectified on it first "
-                                   "(tiledsm.ortho, occlusion-aware)")
-    dsm_post: Optional[str] = Field(None, description="DSM of the post epoch: post is orthorectified on it first")
-    kernel: str = Field("cs", description="ortho interpolation kernel of images given with a DSM: nn, bl, cr, cs")
+                                   "(tiledsm.ortho, occlusion-aware)", json_schema_extra=option('--dsm-pre'))
+    dsm_post: Optional[str] = Field(None, description="DSM of the post epoch: post is orthorectified on it first", json_schema_extra=option('--dsm-post'))
+    kernel: str = Field("cs", description="ortho interpolation kernel of images given with a DSM: nn, bl, cr, cs", json_schema_extra=option('--kernel'))
 
 
 class DisplaceGrid(StrictModel):
     like: Optional[str] = Field(None, description="measure on this raster's lattice (CRS, cell size, origin); "
-                                "default: PRE's own")
-    resolution: Optional[float] = Field(None, gt=0, description="cell size, metres, in PRE's CRS and origin")
-    chunk: int = Field(1024, ge=64, description="ortho pixels per chunk side")
+                                "default: PRE's own", json_schema_extra=option('--like'))
+    resolution: Optional[float] = Field(None, gt=0, description="cell size, metres, in PRE's CRS and origin", json_schema_extra=option('--resolution'))
+    chunk: int = Field(1024, ge=64, description="ortho pixels per chunk side", json_schema_extra=option('--chunk'))
 
 
 class DisplaceRecipe(StrictModel):
@@ -92,10 +92,10 @@ class DisplaceRecipe(StrictModel):
     grid: DisplaceGrid = DisplaceGrid()
     displacement: CorrelationSpec = CorrelationSpec()
     stable_mask: Optional[str] = Field(None, description="GeoJSON polygons EXCLUDED from stable terrain (moving "
-                                       "ground); the rest fixes the frame and calibrates sigma")
+                                       "ground); the rest fixes the frame and calibrates sigma", json_schema_extra=option('--stable-mask'))
     fault_trace: Optional[list[tuple[float, float]]] = Field(
         None, min_length=2, max_length=2, description="two (lon, lat) points, WGS84 degrees: offsets and profiles "
-        "across it, right side (looking from the first point to the second) minus left")
+        "across it, right side (looking from the first point to the second) minus left", json_schema_extra=option('--fault-trace'))
     cluster: ClusterSpec = ClusterSpec()
     output: OutputSpec = OutputSpec()
 

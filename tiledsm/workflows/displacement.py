@@ -36,7 +36,7 @@ from typing import Literal, Optional
 import numpy as np
 from pydantic import Field, field_validator
 
-from tiledsm.recipes import StrictModel
+from tiledsm.recipes import StrictModel, option
 
 __all__ = ["DisplacementSpec", "run_displacement"]
 
@@ -50,22 +50,22 @@ class CorrelationSpec(StrictModel):
     (``displacement:`` of ``deformation``, ``displace``) and on the
     command line (pixels of the ortho grid)."""
 
-    window: int = Field(32, ge=8, description="correlation window side, pixels (even)")
-    step: int = Field(8, ge=2, description="spacing of the displacement cells, pixels (even; <= window/2)")
+    window: int = Field(32, ge=8, description="correlation window side, pixels (even)", json_schema_extra=option('--window'))
+    step: int = Field(8, ge=2, description="spacing of the displacement cells, pixels (even; <= window/2)", json_schema_extra=option('--step'))
     search: int = Field(8, ge=1, description="largest displacement looked for, pixels per axis (at the coarsest "
-                        "level when max_displacement asks for a pyramid)")
+                        "level when max_displacement asks for a pyramid)", json_schema_extra=option('--search'))
     frequency_cut: float = Field(0.6, gt=0, le=1, description="share of Nyquist used by the sub-pixel phase fit")
-    min_quality: float = Field(0.5, ge=0, le=1, description="phase coherence under which a cell is NaN")
+    min_quality: float = Field(0.5, ge=0, le=1, description="phase coherence under which a cell is NaN", json_schema_extra=option('--min-quality'))
     min_peak: float = Field(0.15, ge=0, le=1, description="coarse phase-correlation peak under which a cell is NaN "
-                            "(no true match within search)")
-    min_texture: float = Field(1.0, ge=0, description="std of the pre window (DN) under which a cell is NaN")
+                            "(no true match within search)", json_schema_extra=option('--min-peak'))
+    min_texture: float = Field(1.0, ge=0, description="std of the pre window (DN) under which a cell is NaN", json_schema_extra=option('--min-texture'))
     plane: bool = Field(True, description="remove a plane per component fitted on stable terrain (else its median)")
-    stripes: Optional[Literal["rows"]] = Field(None, description="also remove along-row stripes (attitude jitter)")
+    stripes: Optional[Literal["rows"]] = Field(None, description="also remove along-row stripes (attitude jitter)", json_schema_extra=option('--stripes'))
     max_displacement: Optional[float] = Field(
         None, gt=0, description="largest displacement expected, metres: beyond search pixels, the correlation runs "
-        "coarse to fine (tiledsm.displace.pyramid) with search at the coarsest level; default: search pixels")
+        "coarse to fine (tiledsm.displace.pyramid) with search at the coarsest level; default: search pixels", json_schema_extra=option('--max-displacement'))
     refine_search: int = Field(4, ge=1, description="with a pyramid: search around each coarse candidate at full "
-                               "resolution, pixels")
+                               "resolution, pixels", json_schema_extra=option('--refine-search'))
 
     @field_validator("window", "step")
     @classmethod

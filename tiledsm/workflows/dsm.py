@@ -13,7 +13,7 @@ from pydantic import Field
 
 from tiledsm.cluster import ClusterConfig
 from tiledsm.orient.spec import OrientSpec
-from tiledsm.recipes import ClusterSpec, GridSpec, InputSpec, MatchSpec, OutputSpec, StrictModel
+from tiledsm.recipes import ClusterSpec, GridSpec, InputSpec, MatchSpec, OutputSpec, StrictModel, option
 from tiledsm.workflows.common import completeness, grid_chunk, log, write_dsm_products, write_json
 
 __all__ = ["DSMRecipe", "run_dsm"]
@@ -25,10 +25,10 @@ class DSMRecipe(StrictModel):
     pipeline: Literal["dsm"]
     name: str = "dsm"
     input: InputSpec
-    grid: GridSpec = GridSpec()
+    grid: GridSpec = Field(GridSpec(), json_schema_extra=option("--like/--bounds"))
     match: MatchSpec = MatchSpec()
     cluster: ClusterSpec = ClusterSpec()
-    output: OutputSpec = OutputSpec()
+    output: OutputSpec = Field(OutputSpec(), json_schema_extra=option("--geoid"))  # the command's only output option
     orient: Optional[OrientSpec] = Field(None, description="orient the images first (GCPs, reference DEM); the DSM uses the corrected RPCs")
 
 
