@@ -205,6 +205,7 @@ CASES = [
     Case("dsm-resolution-negative", dsm("--resolution", "-1"), lambda f: ["--resolution"]),
     Case("dsm-resolution-huge", dsm("--resolution", "1e6"), lambda f: ["--resolution"]),
     Case("dsm-chunk-zero", dsm("--chunk", "0"), lambda f: ["--chunk"]),
+    Case("dsm-chunk-odd", dsm("--chunk", "101"), lambda f: ["--chunk", "must be even", "101"]),
     Case("dsm-crs-unknown", dsm("--crs", "EPSG:99999"), lambda f: ["--crs", "EPSG:99999"]),
     Case("dsm-out-is-a-file", lambda f, out: ["dsm", str(f["v0"]), str(f["v1"]), "--out", str(f["file"])],
          lambda f: ["a_file", "--out"]),

@@ -104,6 +104,14 @@ class GridSpec(StrictModel):
                                                                 json_schema_extra=option("--bounds"))
     chunk: int = Field(512, ge=32, description="chunk side, cells", json_schema_extra=option("--chunk"))
 
+    @field_validator("chunk")
+    @classmethod
+    def _even_chunk(cls, value: int) -> int:
+        # even chunks keep coarse and fine chunk corners aligned (tiledsm.dsm.DSMParams checks it too)
+        if value % 2:
+            raise ValueError(f"must be even (a coarser level's chunks are half as large), got {value}")
+        return value
+
     @model_validator(mode="after")
     def _consistent(self):
         if self.like and (self.crs or self.bounds or self.resolution):

@@ -32,20 +32,10 @@ from tiledsm.plan.core import (
     seen_fraction,
 )
 from tiledsm.plan.memory import dsm_levels
+from tiledsm.recipes import dsm_params
 
 
 # --------------------------------------------------------------------------- DSM
-def _dsm_params(recipe, names: FieldNames):
-    from tiledsm.recipes import dsm_params
-
-    try:
-        return dsm_params(recipe.grid, recipe.match)
-    except (ValueError, TypeError) as exc:
-        text = str(exc)
-        name = names.chunk if "chunk" in text else names.levels if "levels" in text else "match.params"
-        raise InvalidOptionError(f"{name}: {text}") from exc
-
-
 def _explicit_grid(spec, names: FieldNames, like: str | None):
     """The grid a recipe's ``grid`` section names (``like`` or ``bounds``)
     and the option to blame for it, or ``(None, resolution option)``."""
@@ -197,7 +187,7 @@ def plan_dsm(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names
     for v in views:
         source = (v.rpc.source or "?").replace(v.path, "").strip(" ()") or v.rpc.source
         plan.inputs.append(InputInfo(names.images, v.path, f"{v.shape[0]} x {v.shape[1]} px, camera: {source}"))
-    params = _dsm_params(recipe, names)
+    params = dsm_params(recipe.grid, recipe.match)  # the recipe's models checked every value, naming its field
     if spec.crs:
         _check_crs(spec.crs, names.crs)
     if params.height_range is not None and not params.height_range[0] < params.height_range[1]:
