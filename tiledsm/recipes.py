@@ -234,9 +234,9 @@ class ClusterSpec(StrictModel):
     older spelling: an address, or ``synchronous``."""
 
     kind: Literal["local", "address", "slurm", "pbs", "sge"] = "local"
-    address: Optional[str] = Field(None, description="kind address: tcp://host:port")
+    address: Optional[str] = Field(None, description="kind address: tcp://host:port", json_schema_extra=option("--scheduler"))
     scheduler: Optional[str] = Field(None, description="None: local cluster; 'threads' (workers threads of one process); 'synchronous'; or tcp://host:port")
-    workers: Optional[int] = Field(None, ge=1)
+    workers: Optional[int] = Field(None, ge=1, json_schema_extra=option("--workers"))
     memory_per_worker: Optional[str] = Field(
         None, description="memory of each worker, e.g. 4GiB (kind local/address; batch jobs: jobqueue.memory)")
     jobqueue: Optional[JobQueueSpec] = None

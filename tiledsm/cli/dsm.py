@@ -62,10 +62,12 @@ def dsm_recipe(args: argparse.Namespace):
 
 def run(args: argparse.Namespace) -> int:
     from tiledsm.cli.run import plan_and_run
-    from tiledsm.plan import CLI_NAMES
+    from tiledsm.plan import FieldNames
+    from tiledsm.recipes import options_of
+    from tiledsm.workflows.dsm import DSMRecipe
 
     # the matching kernels are nogil numba, reads are GDAL: threads of this process beat a local cluster of
     # processes, which pays for starting workers and for moving images and level stores between them (s2p_pair
     # on its grid, 2 workers: 9.2 s instead of 12.9 s; benchmarks/dsm.py --schedulers threads cluster)
     cluster = cluster_config(args)
-    return plan_and_run(dsm_recipe(args), args, cluster, CLI_NAMES)
+    return plan_and_run(dsm_recipe(args), args, cluster, FieldNames.of_options(options_of(DSMRecipe)))

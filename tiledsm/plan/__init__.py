@@ -49,7 +49,6 @@ and GiB in text are 2**20 and 2**30 bytes); heights are ellipsoidal metres.
 """
 
 from tiledsm.plan.core import (
-    CLI_NAMES,
     RECIPE_NAMES,
     FieldNames,
     Limits,
@@ -88,7 +87,6 @@ from tiledsm.plan.imagery import (
 )
 
 __all__ = [
-    "CLI_NAMES",
     "RECIPE_NAMES",
     "FieldNames",
     "Limits",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -23,34 +23,40 @@ _FOOTPRINT_SAMPLES = 200
 # --------------------------------------------------------------------------- names and limits
 @dataclass(frozen=True)
 class FieldNames:
-    """How the user spelled each input, so that messages name it: command
-    line options (:data:`CLI_NAMES`) or recipe field paths
-    (:data:`RECIPE_NAMES`)."""
+    """How the user spelled each input a plan names, so that messages name
+    it: recipe field paths (:data:`RECIPE_NAMES`, the defaults) or a
+    command's options (:meth:`of_options`)."""
 
-    images: str = "IMAGES"
+    images: str = "input.images"
     rpcs: str = "input.rpcs"
-    reference: str = "--reference"
-    like: str = "--like"
-    bounds: str = "--bounds"
-    resolution: str = "--resolution"
-    crs: str = "--crs"
-    chunk: str = "--chunk"
-    levels: str = "--levels"
-    height_range: str = "--height-range"
-    geoid: str = "--geoid"
-    workers: str = "--workers"
-    scheduler: str = "--scheduler"
+    reference: str = "input.reference"
+    like: str = "grid.like"
+    bounds: str = "grid.bounds"
+    resolution: str = "grid.resolution"
+    crs: str = "grid.crs"
+    chunk: str = "grid.chunk"
+    levels: str = "match.levels"
+    height_range: str = "match.height_range"
+    geoid: str = "output.geoid"
+    workers: str = "cluster.workers"
+    scheduler: str = "cluster.address"
+
+    @classmethod
+    def of_options(cls, options: dict[str, str]) -> "FieldNames":
+        """The names a command's options give these fields: ``options`` is
+        ``{field path: option}`` of the command's spec
+        (:func:`tiledsm.recipes.options_of`); a field takes the option of
+        the deepest field holding it (``output.geoid`` that of ``output``),
+        or keeps its path when none has one (``input.rpcs``)."""
+        def spelled(path: str) -> str:
+            holders = [f for f in options if path == f or path.startswith(f + ".")]
+            return options[max(holders, key=len)] if holders else path
+
+        return cls(**{f.name: spelled(f.default) for f in fields(cls)})
 
 
-#: names of ``tiledsm dsm``'s options
-CLI_NAMES = FieldNames()
 #: names of a recipe's fields (``tiledsm run``)
-RECIPE_NAMES = FieldNames(
-    images="input.images", reference="input.reference", like="grid.like", bounds="grid.bounds",
-    resolution="grid.resolution", crs="grid.crs", chunk="grid.chunk", levels="match.levels",
-    height_range="match.height_range", geoid="output.geoid", workers="cluster.workers",
-    scheduler="cluster.address",
-)
+RECIPE_NAMES = FieldNames()
 
 
 @dataclass(frozen=True)
