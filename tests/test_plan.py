@@ -187,6 +187,24 @@ def test_dry_run_of_sr_compare_and_run(scene, tmp_path, capsys):
     assert "tasks" in capsys.readouterr().out and not (tmp_path / "r").exists()
 
 
+@pytest.mark.parametrize("key", ["gcps", "check_points"])
+def test_a_recipe_orient_file_that_is_missing_is_refused_by_the_plan(scene, tmp_path, capsys, key):
+    """The files of a recipe's ``orient:`` section are inputs: a missing one
+    is refused by the plan, naming its field, before the folder exists
+    (the DSM plan once checked only the images, and the run failed after
+    the orientation had started)."""
+    path = tmp_path / "r.yaml"
+    present = tmp_path / "present.csv"
+    present.write_text("id,image,lon,lat,h,row,col\n")
+    orient = {"gcps": str(present), key: str(tmp_path / "missing.csv")}
+    path.write_text(yaml.safe_dump({"pipeline": "dsm", "input": {"images": [str(v) for v in scene.views]},
+                                    "orient": orient}))
+    out = tmp_path / "r"
+    line = refused(["run", str(path), "--out", str(out), "--dry-run"], capsys)
+    assert f"orient.{key}" in line and "missing.csv" in line and "no such file" in line, line
+    assert not out.exists()
+
+
 # ------------------------------------------------------------------ 3. hangs
 def test_huge_grid_is_refused_in_seconds_unless_allowed(scene, tmp_path, capsys):
     """Issue reproduction 3: --resolution 0.001 on a 128 m scene (a 1.3e5²

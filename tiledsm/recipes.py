@@ -25,7 +25,7 @@ from tiledsm.errors import RecipeError
 __all__ = [
     "StrictModel", "SynthInput", "InputSpec", "GridSpec", "MatchSpec", "JobQueueSpec", "ClusterSpec", "OutputSpec",
     "grid_from_spec", "dsm_params", "check_size", "load_cluster", "read_recipe", "format_errors", "dump_resolved",
-    "option", "options_of",
+    "option", "options_of", "INPUT_KEYS",
 ]
 
 
@@ -317,8 +317,12 @@ def format_errors(path: Path, exc: ValidationError) -> str:
     return f"{path}: invalid recipe: " + "; ".join(parts)
 
 
-_PATH_KEYS = {"images", "rpcs", "reference", "like", "geoid", "stable_mask", "pre", "post", "dem", "truth_dh", "truth_mask",
-              "gcps", "check_points", "cameras", "dsm", "truth", "data_dirs"}
+#: recipe fields that hold input file paths, wherever they sit: relative ones are resolved against the
+#: recipe's folder (:func:`read_recipe`) and every plan checks they exist (outputs such as ``train.out`` are not)
+INPUT_KEYS = frozenset({"images", "rpcs", "reference", "like", "geoid", "stable_mask", "pre", "post", "dem", "truth_dh",
+                        "truth_mask", "gcps", "check_points", "cameras", "dsm", "truth"})
+#: recipe fields that hold input folders (resolved too)
+_FOLDER_KEYS = frozenset({"data_dirs"})
 
 
 def _resolve_paths(data: Any, base: Path, key: str | None = None) -> Any:
@@ -327,7 +331,7 @@ def _resolve_paths(data: Any, base: Path, key: str | None = None) -> Any:
         return {k: _resolve_paths(v, base, k) for k, v in data.items()}
     if isinstance(data, list):
         return [_resolve_paths(v, base, key) for v in data]
-    if key in _PATH_KEYS and isinstance(data, str) and not Path(data).is_absolute():
+    if key in INPUT_KEYS | _FOLDER_KEYS and isinstance(data, str) and not Path(data).is_absolute():
         return str((base / data).resolve())
     return data
 

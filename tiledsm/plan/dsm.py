@@ -178,6 +178,10 @@ def plan_dsm(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names
                           f"{out / 'scene'}; its grid, graph and memory are planned then")
         plan.reuse = "decided once the scene is made: a DSM store in the folder is resumed if its fingerprint matches"
         return plan
+    orient = getattr(recipe, "orient", None)
+    for key in ("gcps", "check_points", "dem", "geoid"):  # the orientation runs first: its files are inputs too
+        if orient is not None and getattr(orient, key):
+            plan.inputs.append(InputInfo(f"orient.{key}", existing_file(getattr(orient, key), f"orient.{key}")))
     images = [readable_raster(existing_file(p, names.images), names.images) for p in inp.images]
     rpcs = [None if r is None else existing_file(r, names.rpcs) for r in inp.rpcs] if inp.rpcs else None
     reference = existing_file(inp.reference, names.reference) if inp.reference else None

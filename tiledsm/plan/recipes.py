@@ -6,6 +6,7 @@ import os
 from typing import Any, Sequence
 
 from tiledsm.errors import InvalidOptionError, NoOverlapError
+from tiledsm.recipes import INPUT_KEYS
 from tiledsm.plan.core import FieldNames, InputInfo, Limits, Plan, RECIPE_NAMES, existing_file, new_plan
 
 
@@ -48,11 +49,6 @@ def plan_recipe(
     return plan
 
 
-#: recipe fields that hold input file paths (outputs such as ``train.out`` are not)
-_INPUT_KEYS = {"images", "rpcs", "reference", "like", "geoid", "stable_mask", "dem", "truth_dh", "truth_mask",
-               "cameras", "dsm", "truth"}
-
-
 def _recipe_files(data: Any, where: str) -> list[tuple[str, str]]:
     """``(field path, file)`` of every input file a recipe names."""
     if isinstance(data, dict):
@@ -60,7 +56,7 @@ def _recipe_files(data: Any, where: str) -> list[tuple[str, str]]:
     if isinstance(data, list):
         return [x for v in data for x in _recipe_files(v, where)]
     key = where.rsplit(".", 1)[-1]
-    return [(where, data)] if key in _INPUT_KEYS and isinstance(data, str) else []
+    return [(where, data)] if key in INPUT_KEYS and isinstance(data, str) else []
 
 
 def check_sr_weights(models: Sequence[str], scale: int, scale_name: str, remedy: str) -> None:
