@@ -17,7 +17,7 @@ from tiledsm.cli import main
 from tiledsm.cluster import ClusterConfig, compute_context, worker_memory_budget
 from tiledsm.errors import InvalidOptionError, WorkerMemoryError
 from tiledsm.io import open_product
-from tiledsm.plan import plan_recipe
+from tiledsm.pipelines import plan_recipe
 from tiledsm.synth import make_scene
 from tiledsm.workflows.dsm import DSMRecipe
 

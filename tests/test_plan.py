@@ -160,7 +160,7 @@ def test_plan_resolves_every_path_to_an_absolute_one(scene, tmp_path, monkeypatc
     """Issue reproduction 4, in the plan: a relative --out (and inputs) are
     absolute before any worker sees them."""
     from tiledsm.cli.dsm import dsm_recipe
-    from tiledsm.plan import plan_recipe
+    from tiledsm.pipelines import plan_recipe
 
     monkeypatch.chdir(scene.out_dir)
     args = build_parser().parse_args(
@@ -641,7 +641,7 @@ def test_worker_baseline_counts_the_cuda_context():
 def test_plan_levels_match_the_built_graph(scene):
     """The plan's level sizes are the lazy DSM's own: as many matching tasks
     per level as the graph's ``match-L<level>`` layer holds."""
-    from tiledsm.plan import plan_recipe
+    from tiledsm.pipelines import plan_recipe
     from tiledsm.workflows.dsm import DSMRecipe
 
     for chunk, levels in ((64, 2), (128, 2), (256, 1), (128, 3)):
@@ -663,7 +663,7 @@ def test_plan_task_sizes_and_candidates(scene):
     """Largest task = chunk grown to the paths' restart lines plus half a
     window (clipped at the grid's edges); candidates: the whole range at the
     coarsest level, the band (25) below."""
-    from tiledsm.plan import plan_recipe
+    from tiledsm.pipelines import plan_recipe
     from tiledsm.workflows.dsm import DSMRecipe
 
     r = DSMRecipe.model_validate({"pipeline": "dsm", "input": {"images": [str(v) for v in scene.views]},

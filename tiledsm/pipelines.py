@@ -38,7 +38,7 @@ from tiledsm.workflows.train_sr import TrainSRRecipe, run_train_sr
 
 log = logging.getLogger("tiledsm")
 
-__all__ = ["Pipeline", "PIPELINES", "load_recipe", "run_recipe"]
+__all__ = ["Pipeline", "PIPELINES", "load_recipe", "plan_recipe", "run_recipe"]
 
 
 @dataclass(frozen=True)
@@ -47,7 +47,7 @@ class Pipeline:
     more than the checks every recipe gets, the function that plans it.
 
     ``plan(plan, recipe, cluster, *, overwrite, names)`` fills the
-    :class:`~tiledsm.plan.Plan` that :func:`tiledsm.plan.plan_recipe`
+    :class:`~tiledsm.plan.Plan` that :func:`plan_recipe`
     made (workers, scheduler and the folder's lock already checked) and
     returns it; ``names`` (:class:`~tiledsm.plan.FieldNames`) says how the
     user spelled each input (command options or recipe fields)."""
@@ -90,6 +90,33 @@ def load_recipe(path: str | Path, overrides: dict[str, Any] | None = None) -> Ba
         raise RecipeError(format_errors(Path(path), exc)) from None
 
 
+def plan_recipe(
+    recipe,
+    out: str | Path,
+    cluster: ClusterConfig | None = None,
+    *,
+    overwrite: bool = False,
+    limits=None,
+    names=None,
+    command: str = "run",
+):
+    """Plan any recipe into the folder ``out`` (made absolute): the workers,
+    the scheduler and the folder's lock first (:func:`tiledsm.plan.new_plan`),
+    then the plan of the recipe's pipeline (:attr:`Pipeline.plan`, e.g.
+    :func:`tiledsm.plan.plan_dsm`), or, for a pipeline without one, the
+    checks every recipe gets (:func:`tiledsm.plan.plan_inputs`).
+
+    ``names`` (:class:`~tiledsm.plan.FieldNames`, default the recipe's
+    field paths) says how the user spelled each input; ``command`` heads
+    the plan's summary."""
+    from tiledsm.plan import RECIPE_NAMES, Limits, new_plan, plan_inputs
+
+    names = names or RECIPE_NAMES
+    plan = new_plan(command, out, cluster, limits=limits or Limits(), workers=names.workers, scheduler=names.scheduler)
+    stage_plan = PIPELINES[recipe.pipeline].plan or plan_inputs
+    return stage_plan(plan, recipe, cluster, overwrite=overwrite, names=names)
+
+
 def run_recipe(
     recipe,
     out_dir: str | Path,
@@ -101,7 +128,7 @@ def run_recipe(
 ) -> dict:
     """Run a validated recipe into ``out_dir``; returns its metrics.
 
-    The run is planned first (:func:`tiledsm.plan.plan_recipe`, unless
+    The run is planned first (:func:`plan_recipe`, unless
     ``plan`` is given): what cannot work is refused in seconds, before the
     folder is created, locked or any cluster started. The folder is then
     locked for the run (:class:`tiledsm.io.lock.OutputLock`: a second
@@ -118,7 +145,7 @@ def run_recipe(
     interruption -- before the store exists, while it fills, after it is
     finished -- leaves them claiming products they do not describe.
     """
-    from tiledsm.plan import Limits, plan_recipe
+    from tiledsm.plan import Limits
     from tiledsm.io.lock import OutputLock
 
     out = Path(out_dir).expanduser().resolve()

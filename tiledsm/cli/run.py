@@ -111,8 +111,8 @@ def print_warnings(command: str, messages) -> None:
 def plan_and_run(recipe, args: argparse.Namespace, cluster, names) -> int:
     """Plan a recipe into ``args.out``; print the plan (``--dry-run``) or
     run it, printing its warnings on stderr and its summary."""
-    from tiledsm.pipelines import run_recipe
-    from tiledsm.plan import Limits, plan_recipe
+    from tiledsm.pipelines import plan_recipe, run_recipe
+    from tiledsm.plan import Limits
 
     plan = plan_recipe(
         recipe, args.out, cluster, overwrite=args.overwrite, limits=Limits(allow_large=args.allow_large),

@@ -1,7 +1,7 @@
 """Plan a run before anything runs: check it, size it, refuse it in seconds.
 
 A :class:`Plan` is made before any cluster starts or any chunk is computed,
-by :func:`plan_recipe` (``tiledsm dsm`` and ``tiledsm run``),
+by :func:`tiledsm.pipelines.plan_recipe` (``tiledsm dsm`` and ``tiledsm run``),
 :func:`plan_sr` (``tiledsm sr``), :func:`plan_compare`
 (``tiledsm compare``), :func:`plan_ortho` (``tiledsm ortho``) and
 :func:`plan_orient` (``tiledsm orient``). It
@@ -75,7 +75,7 @@ from tiledsm.plan.dsm import (
 )
 from tiledsm.plan.recipes import (
     check_sr_weights,
-    plan_recipe,
+    plan_inputs,
 )
 from tiledsm.plan.stages import (
     plan_sr,
@@ -104,7 +104,7 @@ __all__ = [
     "dsm_reuse",
     "check_sr_weights",
     "plan_dsm",
-    "plan_recipe",
+    "plan_inputs",
     "plan_sr",
     "plan_compare",
     "plan_ortho",

@@ -149,7 +149,7 @@ def dsm_reuse(out: Path, grid, fingerprint: dict, overwrite: bool) -> tuple[str,
 
 
 def plan_dsm(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names: FieldNames = RECIPE_NAMES) -> Plan:
-    """Fill ``plan`` (made by :func:`plan_recipe`) for a ``pipeline: dsm``
+    """Fill ``plan`` (made by :func:`tiledsm.pipelines.plan_recipe`) for a ``pipeline: dsm``
     recipe (``tiledsm dsm`` builds one).
 
     Checks, in this order, each failure one line naming the option or

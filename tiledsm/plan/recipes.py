@@ -2,38 +2,21 @@
 
 from __future__ import annotations
 
-import os
 from typing import Any, Sequence
 
 from tiledsm.errors import InvalidOptionError, NoOverlapError
 from tiledsm.recipes import INPUT_KEYS
-from tiledsm.plan.core import FieldNames, InputInfo, Limits, Plan, RECIPE_NAMES, existing_file, new_plan
+from tiledsm.plan.core import FieldNames, InputInfo, Plan, RECIPE_NAMES, existing_file
 
 
 # --------------------------------------------------------------------------- recipes
-def plan_recipe(
-    recipe,
-    out: str | os.PathLike,
-    cluster=None,
-    *,
-    overwrite: bool = False,
-    limits: Limits = Limits(),
-    names: FieldNames = RECIPE_NAMES,
-    command: str = "run",
-) -> Plan:
-    """Plan any recipe into the folder ``out`` (made absolute): the workers
-    and the folder's lock first, then the plan of the recipe's pipeline
-    (:attr:`tiledsm.pipelines.Pipeline.plan`, e.g. :func:`tiledsm.plan.plan_dsm`); for
-    a pipeline without one (``sr_dsm``, ``deformation``, ``train_sr``) the
-    checks that need no stage to run -- inputs exist, SR weights exist for
-    ``sr.scale``, a stable mask overlaps the scene -- while their stages
+def plan_inputs(plan: Plan, recipe, cluster=None, *, overwrite: bool = False,
+                names: FieldNames = RECIPE_NAMES) -> Plan:
+    """Fill ``plan`` for a pipeline without a plan of its own
+    (:attr:`tiledsm.pipelines.Pipeline.plan`): the checks that need no
+    stage to run -- every input file exists, SR weights exist for
+    ``sr.scale``, a stable mask overlaps the scene -- while the stages
     plan their own grids when they run."""
-    from tiledsm.pipelines import PIPELINES
-
-    plan = new_plan(command, out, cluster, limits=limits, workers=names.workers, scheduler=names.scheduler)
-    stage_plan = PIPELINES[recipe.pipeline].plan
-    if stage_plan is not None:
-        return stage_plan(plan, recipe, cluster, overwrite=overwrite, names=names)
     plan.notes.append(f"pipeline {recipe.pipeline}: each stage plans its grid, graph and memory when it runs")
     plan.reuse = "stores of an earlier run with the same fingerprint (checked by each stage)"
     for role, path in _recipe_files(recipe.model_dump(), ""):

@@ -37,12 +37,12 @@ def run_dsm(
 ) -> dict:
     """Views (or a synthetic scene) -> DSM products and metrics.
 
-    ``plan`` (:func:`tiledsm.plan.plan_recipe`) carries the opened views, tie
+    ``plan`` (:func:`tiledsm.plan.plan_dsm`) carries the opened views, tie
     points and lazy DSM; without it (or for a synthetic scene, made here
     first) the run plans itself. Its warnings, and a low completeness, go
     to ``metrics.json`` (``warnings``).
     """
-    from tiledsm.plan import LOW_COMPLETENESS, Limits, plan_recipe
+    from tiledsm.plan import LOW_COMPLETENESS, Limits, new_plan, plan_dsm
 
     cluster = cluster or recipe.cluster.config()
     t_start = time.perf_counter()
@@ -66,9 +66,9 @@ def run_dsm(
         truth_mask = getattr(scene, "visible_mask", None)
         views_recipe = recipe.model_copy(update={"input": InputSpec(
             images=[str(p) for p in scene.views], reference=str(scene.truth_dsm))})
-        plan = plan_recipe(views_recipe, out, cluster, overwrite=overwrite, limits=limits)
+        plan = plan_dsm(new_plan("run", out, cluster, limits=limits), views_recipe, cluster, overwrite=overwrite)
     elif plan is None or plan.prepared is None:
-        plan = plan_recipe(recipe, out, cluster, overwrite=overwrite, limits=limits)
+        plan = plan_dsm(new_plan("run", out, cluster, limits=limits), recipe, cluster, overwrite=overwrite)
     prep = plan.prepared
     reference, report = prep.reference, prep.report
     scores: dict = {}
