@@ -188,3 +188,22 @@ def test_dsm_truth_that_does_not_fit_is_refused(dsm_run, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--truth: DSMs do not overlap" in err[0] and "far.tif" in err[0], err
     assert not (out / "evaluation.json").exists()
+
+
+def test_a_scene_without_an_event_is_no_displacement_truth(displaced, dsm_run, capsys):
+    s, _ = dsm_run
+    _, out = displaced
+    (out / "evaluation.json").unlink(missing_ok=True)
+    capsys.readouterr()
+    assert main(["evaluate", str(out), "--truth", str(s.out_dir)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--truth: a synthetic scene without an event" in err[0] and str(s.out_dir) in err[0]
+    assert not (out / "evaluation.json").exists()
+
+
+def test_a_pipeline_without_a_truth_is_refused(tmp_path, capsys):
+    (tmp_path / "recipe.resolved.yaml").write_text("pipeline: train_sr\n")
+    assert main(["evaluate", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "a train_sr run has no truth to be scored against" in err[0], err
+    assert not (tmp_path / "evaluation.json").exists()

@@ -107,8 +107,8 @@ def open_truth(path: str | Path, name: str = "--truth") -> DisplacementTruth:
     if (folder / "scene.json").is_file():
         doc = json.loads((folder / "scene.json").read_text())
         if "event" not in doc:
-            raise InputFileError(f"{folder}: {name}: a synthetic scene without an event (made without --event): "
-                                 "it holds no displacement to score against")
+            raise InputFileError(f"{folder}: {name}: a synthetic scene without an event: it holds no "
+                                 "displacement to score against")
         ev = doc["event"]
         params = EventParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in ev["params"].items()})
         return DisplacementTruth(folder, {n: folder / ev[k] for n, k in EVENT_RASTERS.items()}, params,
