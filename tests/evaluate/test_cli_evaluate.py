@@ -118,6 +118,10 @@ def test_displace_run_scored_against_true_rasters(displaced, capsys):
     with rasterio.open(out / "evaluation" / "true_dE.tif") as src, rasterio.open(out / "dE.tif") as run:
         assert src.transform == run.transform and src.shape == run.shape
         assert np.array_equal(src.read(1), np.broadcast_to(moved_share * SHIFT[0], src.shape).astype(np.float32))
+    for n in ("dE", "dN"):
+        assert (out / "evaluation" / f"error_{n}.png").stat().st_size > 1000
+    assert sorted(scores["products"]) == ["evaluation/error_dE.png", "evaluation/error_dN.png",
+                                          "evaluation/true_dE.tif", "evaluation/true_dN.tif"]
 
 
 @pytest.mark.parametrize("args, needle", [

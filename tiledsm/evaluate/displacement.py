@@ -38,7 +38,7 @@ import numpy as np
 from tiledsm.errors import InputFileError, NoOverlapError
 
 __all__ = ["COMPONENTS", "DisplacementTruth", "FieldGrid", "open_truth", "scene_truth", "truth_on_field",
-           "score_fields", "score", "write_truth_cogs"]
+           "score_fields", "score", "write_truth_cogs", "write_error_quicklooks"]
 
 #: the components a displacement field may hold
 COMPONENTS = ("dE", "dN", "dU")
@@ -273,19 +273,32 @@ def score_fields(fields: dict, sigmas: dict, stable: np.ndarray, grid: FieldGrid
     return doc, truth_f
 
 
-def write_truth_cogs(truth: dict, grid: FieldGrid, folder: Path, prefix: str = "true_") -> list[Path]:
-    """The truth on the field grid as COGs ``<prefix><component>.tif``."""
+def _on_grid(a: np.ndarray, grid: FieldGrid):
     import rioxarray  # noqa: F401  (registers .rio)
     import xarray as xr
 
+    arr = xr.DataArray(a.astype(np.float32), dims=("y", "x"), coords={"y": grid.y, "x": grid.x})
+    return arr.rio.write_crs(grid.crs).rio.write_transform(grid.transform)
+
+
+def write_truth_cogs(truth: dict, grid: FieldGrid, folder: Path, prefix: str = "true_") -> list[Path]:
+    """The truth on the field grid as COGs ``<prefix><component>.tif``."""
     from tiledsm.io import write_cog
 
     written = []
     for n, a in truth.items():
-        arr = xr.DataArray(a.astype(np.float32), dims=("y", "x"), coords={"y": grid.y, "x": grid.x})
-        write_cog(arr.rio.write_crs(grid.crs).rio.write_transform(grid.transform), folder / f"{prefix}{n}.tif")
+        write_cog(_on_grid(a, grid), folder / f"{prefix}{n}.tif")
         written.append(folder / f"{prefix}{n}.tif")
     return written
+
+
+def write_error_quicklooks(fields: dict, truth: dict, grid: FieldGrid, folder: Path) -> list[Path]:
+    """``error_<component>.png``: the field minus its truth, metres (symmetric
+    colour limits, magenta where the run measured nothing)."""
+    from tiledsm.quicklook import quicklook
+
+    return [quicklook(_on_grid(fields[n] - t, grid), folder / f"error_{n}.png", kind="difference",
+                      title=f"{n} - truth (m)") for n, t in truth.items()]
 
 
 def _stable_mask_of(run_dir: Path, recipe: dict) -> str | None:
@@ -317,7 +330,8 @@ def score(run_dir: Path, truth: str | Path | None = None) -> dict:
 
     Returns the :func:`score_fields` document with ``truth`` (where it came
     from) and ``products`` (the field scored); writes the truth on the
-    field grid as ``true_dE.tif`` ... into ``evaluation/``.
+    field grid as ``true_dE.tif`` ... and the error maps ``error_dE.png`` ...
+    into ``evaluation/``.
 
     Raises
     ------
@@ -361,6 +375,7 @@ def score(run_dir: Path, truth: str | Path | None = None) -> dict:
                                 corrected=pipeline == "deformation" or bool(mask),
                                 fault=_fault_of(metrics, section, known), fault_doc=section.get("fault"))
     (run_dir / "evaluation").mkdir(exist_ok=True)
-    written = write_truth_cogs(truth_f, grid, run_dir / "evaluation")
+    written = [*write_truth_cogs(truth_f, grid, run_dir / "evaluation"),
+               *write_error_quicklooks(fields, truth_f, grid, run_dir / "evaluation")]
     return {"truth": str(known.source), "field": str(store.relative_to(run_dir)),
             "stable_mask": mask, **doc, "products": [str(p.relative_to(run_dir)) for p in written]}
