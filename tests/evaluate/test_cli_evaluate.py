@@ -209,5 +209,5 @@ def test_a_pipeline_without_a_truth_is_refused(tmp_path, capsys):
     (tmp_path / "recipe.resolved.yaml").write_text("pipeline: train_sr\n")
     assert main(["evaluate", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "a train_sr run has no truth to be scored against" in err[0], err
+    assert len(err) == 1 and f"{tmp_path}: RUN_DIR: a train_sr run has no truth to be scored against" in err[0], err
     assert not (tmp_path / "evaluation.json").exists()

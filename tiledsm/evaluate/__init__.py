@@ -66,8 +66,9 @@ def pipeline_of(run_dir: str | Path) -> str:
     return name
 
 
-def scorer_of(pipeline: str) -> Callable[..., dict]:
-    """The scorer of ``pipeline`` (:data:`SCORERS`), imported now.
+def scorer_of(pipeline: str, run_dir: str | Path = "RUN_DIR") -> Callable[..., dict]:
+    """The scorer of ``pipeline`` (:data:`SCORERS`), imported now
+    (``run_dir``: the folder the messages name).
 
     Raises
     ------
@@ -76,7 +77,7 @@ def scorer_of(pipeline: str) -> Callable[..., dict]:
     """
     target = SCORERS.get(pipeline)
     if target is None:
-        raise InputFileError(f"RUN_DIR: a {pipeline} run has no truth to be scored against "
+        raise InputFileError(f"{run_dir}: RUN_DIR: a {pipeline} run has no truth to be scored against "
                              f"(scored pipelines: {', '.join(sorted(SCORERS))})")
     module, _, function = target.partition(":")
     try:
@@ -84,7 +85,7 @@ def scorer_of(pipeline: str) -> Callable[..., dict]:
     except ModuleNotFoundError as exc:
         if exc.name != module:  # a dependency of the scorer is missing: that is a bug, not the user's input
             raise
-        raise InputFileError(f"RUN_DIR: the scorer of {pipeline} runs ({module}) is not in this "
+        raise InputFileError(f"{run_dir}: RUN_DIR: the scorer of {pipeline} runs ({module}) is not in this "
                              "installation") from None
 
 
@@ -106,7 +107,7 @@ def evaluate_run(run_dir: str | Path, truth: str | Path | None = None) -> dict:
 
     run_dir = Path(run_dir).expanduser().resolve()
     pipeline = pipeline_of(run_dir)
-    scores = scorer_of(pipeline)(run_dir, None if truth is None else Path(truth).expanduser().resolve())
+    scores = scorer_of(pipeline, run_dir)(run_dir, None if truth is None else Path(truth).expanduser().resolve())
     doc = {"pipeline": pipeline, "run": str(run_dir), "scores": scores}
     with atomic_path(run_dir / EVALUATION) as tmp:
         Path(tmp).write_text(json.dumps(doc, indent=2, default=float))
