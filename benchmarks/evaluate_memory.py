@@ -117,7 +117,8 @@ def main() -> int:
                 m = json.loads(done.stdout.strip().splitlines()[-1])
                 fields[way] = np.load(out)
                 rows.append({"size": n, "field_cells": n // STEP, "way": way, **m})
-                print(f"{n}² -> {n // STEP}² field, {way:9s}: {m['wall_s']:6.2f} s, peak RSS {m['peak_rss_mib']:6.0f} MiB")
+                print(f"{n}² -> {n // STEP}² field, {way:9s}: {m['wall_s']:6.2f} s, "
+                      f"peak RSS {m['peak_rss_mib']:6.0f} MiB")
             same = bool(np.array_equal(fields["whole"], fields["chunkwise"], equal_nan=True))
             for r in rows[-2:]:
                 r["identical"] = same

@@ -313,8 +313,9 @@ def run_displacement(spec: DisplacementSpec, out: Path, *, pre_images, post_imag
     if scene is not None:
         from tiledsm.evaluate.displacement import FieldGrid
 
-        metrics["truth"] = _truth(scene, fields, sigmas, stable, FieldGrid(transform, crs, x, y, spec.step), spec.window,
-                                  fault, metrics.get("fault"), out / "scene" if cog else None)
+        grid = FieldGrid(transform, crs, x, y, spec.step)
+        metrics["truth"] = _truth(scene, fields, sigmas, stable, grid, spec.window, fault, metrics.get("fault"),
+                                  out / "scene" if cog else None)
     if quicklook:
         _figures(ds, fields, stable, fault, metrics, out, dout)
     metrics["timings"] = timings
