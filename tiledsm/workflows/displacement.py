@@ -1,7 +1,9 @@
 """3D displacement of a deformation run: orthoimages of both epochs,
 their sub-pixel correlation, the frame correction on stable terrain,
 ``dU`` read at the displaced position, per-cell uncertainty, offsets across
-the fault and, for a synthetic event, the errors against the truth.
+the fault and, for a synthetic event, the errors against the truth
+(scored by :mod:`tiledsm.evaluate.displacement`, as ``tiledsm evaluate``
+scores a finished run; kept in ``metrics.json``'s ``truth`` section).
 
 Run by :func:`tiledsm.workflows.deformation.run_deformation` when the
 recipe has a ``displacement:`` section (:class:`DisplacementSpec`), after
