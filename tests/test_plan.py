@@ -522,6 +522,8 @@ EMITTERS = {
     "tiledsm/cli/dsm.py": ("dsm",),
     "tiledsm/cli/compare.py": ("compare",),
     "tiledsm/cli/displace.py": ("displace",),
+    "tiledsm/evaluate/displacement.py": ("evaluate",),
+    "tiledsm/evaluate/dsm.py": ("evaluate",),
     "tiledsm/displace/grid.py": ("displace",),
     "tiledsm/workflows/displace.py": ("displace",),
     "tiledsm/cli/run.py": ("dsm", "run", "sr", "compare"),

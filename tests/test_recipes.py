@@ -12,10 +12,27 @@ from tiledsm.recipes import dump_resolved
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 
 
-@pytest.mark.parametrize("name", sorted(p.name for p in RECIPES.glob("*.yaml")))
+@pytest.mark.parametrize("name", sorted(str(p.relative_to(RECIPES)) for p in RECIPES.rglob("*.yaml")))
 def test_shipped_recipes_validate(name):
+    """Examples (recipes/) and seed-reproduction experiments (recipes/experiments/)."""
     recipe = load_recipe(RECIPES / name)
     assert recipe.pipeline
+
+
+@pytest.mark.realdata
+def test_experiments_reach_the_shared_data_beside_the_repository(shared_data):
+    """The experiments sit one folder deeper than the examples: their relative
+    paths still reach ../shared/data."""
+    from tiledsm.sr.train import config_from_yaml
+
+    shared_data("s2p_pair")
+    shared_data("sr_train")
+    s2p = load_recipe(RECIPES / "experiments" / "sr_dsm_s2p.yaml")
+    for path in (*s2p.input.images, s2p.input.reference):
+        assert Path(path).is_file(), path
+    for name in ("train_srmd.yaml", "train_vdsr.yaml", "train_srcnn_residual.yaml"):
+        config = config_from_yaml(RECIPES / "experiments" / name)
+        assert config.data_dirs and all(Path(d).is_dir() for d in config.data_dirs), name
 
 
 def test_unknown_field_named(tmp_path):

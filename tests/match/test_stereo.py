@@ -6,7 +6,7 @@ import warnings
 import numpy as np
 import pytest
 
-from tiledsm.match.stereo import StereoParams, cost_volume, disparity, fill_occlusions
+from stereo import StereoParams, cost_volume, disparity, fill_occlusions
 
 
 def _read(shared_data, name):

@@ -110,3 +110,25 @@ def test_no_stable_terrain_left_is_a_clear_error(tmp_path):
     with pytest.raises(TiledsmError, match=r"no stable terrain left.*everything.geojson.*cover every valid cell"):
         run_recipe(load_recipe(tmp_path / "r.yaml"), tmp_path / "run", CLUSTER)
     assert not (tmp_path / "run" / "displacement").exists()
+
+
+@pytest.mark.slow
+def test_the_finished_folder_scores_as_the_run_did(run3d):
+    """:mod:`tiledsm.evaluate.displacement` on the finished folder (fields read back as
+    float32, the stable mask and the fault found from the folder) gives the run's truth section."""
+    from tiledsm.evaluate.displacement import score
+
+    out, d = run3d
+    s = score(out)
+    assert s["truth"] == str(out / "scene") and s["stable_mask"] == str(out / "scene" / "stable_mask.geojson")
+    for c in ("dE", "dN", "dU"):
+        run, folder = d["truth"]["components"][c], s["components"][c]
+        for part in ("all", "stable", "moving"):
+            assert folder[part]["count"] == run[part]["count"]
+            for k in ("rmse", "median", "nmad"):
+                assert folder[part][k] == pytest.approx(run[part][k], rel=1e-4, abs=1e-6), (c, part, k)
+        assert folder["within_2_sigma"] == pytest.approx(run["within_2_sigma"], abs=2e-3)
+    for name in ("along_strike", "across_strike", "dU"):
+        assert s["offsets"][name]["truth"] == pytest.approx(d["truth"]["offsets"][name]["truth"], abs=1e-6)
+    assert s["uplift"]["error"] == pytest.approx(d["truth"]["uplift"]["error"], abs=1e-5)
+    assert s["frame"] == pytest.approx(d["truth"]["frame"], abs=1e-9)

@@ -27,6 +27,7 @@ COMMAND_MODULES = (
     "tiledsm.cli.ortho",
     "tiledsm.cli.orient",
     "tiledsm.cli.displace",
+    "tiledsm.cli.evaluate",
 )
 
 

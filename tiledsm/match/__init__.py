@@ -1,5 +1,7 @@
 """Dense matching kernels: costs, semi-global aggregation, object-space
-SGVLL matching, image-space disparity, triangulation and tie points.
+SGVLL matching, triangulation and tie points (the image-space matcher that
+validates the cost and the aggregation on Middlebury lives with its test,
+``tests/match/stereo.py``).
 
 Everything here works on in-memory numpy blocks; the dask orchestration
 lives in :mod:`tiledsm.dsm`.
@@ -9,7 +11,6 @@ from tiledsm.match.cost import mean_zncc_cost, zncc_cost
 from tiledsm.match.sgm import aggregate, remove_speckles, winner_take_all
 from tiledsm.match.pyramid import SearchParams, downsample, search_from_coarse
 from tiledsm.match.sgvll import SGVLLParams, height_step, match_block
-from tiledsm.match.stereo import StereoParams, disparity
 from tiledsm.match.tiepoints import height_range_from_tiepoints, match_tiepoints, relative_correction
 from tiledsm.match.triangulate import triangulate
 
@@ -25,8 +26,6 @@ __all__ = [
     "SearchParams",
     "downsample",
     "search_from_coarse",
-    "StereoParams",
-    "disparity",
     "triangulate",
     "match_tiepoints",
     "height_range_from_tiepoints",

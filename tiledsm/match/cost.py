@@ -2,9 +2,9 @@
 
 The object-space matcher (:mod:`tiledsm.match.sgvll`) samples every view at
 the projections of the same ground cells for one candidate height, which
-gives co-registered 2-D arrays; the image-space matcher
-(:mod:`tiledsm.match.stereo`) shifts the right image by a candidate
-disparity. In both cases the cost of a candidate is computed here from two
+gives co-registered 2-D arrays; the image-space matcher the tests validate
+these kernels with (``tests/match/stereo.py``) shifts the right image by a
+candidate disparity. In both cases the cost of a candidate is computed here from two
 such arrays, cell by cell, over a square window.
 
 Conventions

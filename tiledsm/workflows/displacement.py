@@ -1,7 +1,9 @@
 """3D displacement of a deformation run: orthoimages of both epochs,
 their sub-pixel correlation, the frame correction on stable terrain,
 ``dU`` read at the displaced position, per-cell uncertainty, offsets across
-the fault and, for a synthetic event, the errors against the truth.
+the fault and, for a synthetic event, the errors against the truth
+(scored by :mod:`tiledsm.evaluate.displacement`, as ``tiledsm evaluate``
+scores a finished run; kept in ``metrics.json``'s ``truth`` section).
 
 Run by :func:`tiledsm.workflows.deformation.run_deformation` when the
 recipe has a ``displacement:`` section (:class:`DisplacementSpec`), after
@@ -116,11 +118,6 @@ def _orthos(spec: DisplacementSpec, pre_image: str, post_image: str, out: Path, 
     return out / "pre" / "ortho.zarr", out / "post" / "ortho.zarr", reports
 
 
-def _block_mean(a: np.ndarray, step: int, shape: tuple[int, int]) -> np.ndarray:
-    ny, nx = shape
-    return a[: ny * step, : nx * step].reshape(ny, step, nx, step).mean(axis=(1, 3))
-
-
 def _strip_cells(distance: np.ndarray, strip: tuple[float, float], valid: np.ndarray):
     a = np.abs(distance)
     band = valid & (a >= strip[0]) & (a <= strip[1])
@@ -195,7 +192,7 @@ def run_displacement(spec: DisplacementSpec, out: Path, *, pre_images, post_imag
     from tiledsm.compare.stable import exclusion_mask, read_polygons
     from tiledsm.displace import correlate_orthos
     from tiledsm.displace.correct import CorrectionParams, correct_component
-    from tiledsm.displace.uncertainty import binned_sigma, coverage, fit_variogram
+    from tiledsm.displace.uncertainty import binned_sigma, fit_variogram
     from tiledsm.displace.vertical import vertical_displacement
     from tiledsm.io import open_product, withdraw, write_cog, write_zarr
     from tiledsm.workflows.fault import error_stats
@@ -316,8 +313,11 @@ def run_displacement(spec: DisplacementSpec, out: Path, *, pre_images, post_imag
 
     # ---- truth (synthetic event)
     if scene is not None:
-        metrics["truth"] = _truth(scene, fields, sigmas, stable, distance, metrics.get("fault"), x, y, spec, shape,
-                                  transform, crs, res, out, cog, coverage, error_stats)
+        from tiledsm.evaluate.displacement import FieldGrid
+
+        grid = FieldGrid(transform, crs, x, y, spec.step)
+        metrics["truth"] = _truth(scene, fields, sigmas, stable, grid, spec.window, fault, metrics.get("fault"),
+                                  out / "scene" if cog else None)
     if quicklook:
         _figures(ds, fields, stable, fault, metrics, out, dout)
     metrics["timings"] = timings
@@ -325,102 +325,20 @@ def run_displacement(spec: DisplacementSpec, out: Path, *, pre_images, post_imag
     return metrics
 
 
-def _truth(scene, fields, sigmas, stable, distance, fault_doc, x, y, spec, shape, transform, crs, res, out, cog,
-           coverage, error_stats) -> dict:
-    """Truth on the field grid in the stable frame, per-component errors,
-    the share of errors within +-2 sigma, and the offsets' errors."""
-    import xarray as xr
+def _truth(scene, fields, sigmas, stable, grid, window: int, fault, fault_doc, cogs: Path | None) -> dict:
+    """The errors against the synthetic event's truth, scored as
+    :mod:`tiledsm.evaluate.displacement` scores a finished run (the truth on
+    the field grid as ``true_dE.tif`` ... into ``cogs``); the truth's
+    profiles join the fault section's (its figure draws them)."""
+    from tiledsm.evaluate.displacement import scene_truth, score_fields, write_truth_cogs
 
-    from tiledsm.io import write_cog
-    from tiledsm.workflows.fault import throw_across
-
-    from tiledsm.workflows.common import reference_on_grid
-
-    ev = scene.event
-    fine = _fine_like(transform, crs, spec.step, shape)
-    truth = {}
-    for n, key in (("dE", "dx"), ("dN", "dy"), ("dU", "dz")):
-        full = np.asarray(reference_on_grid(ev[key], fine, "nearest").values, np.float64)
-        truth[n] = _block_mean(full, spec.step, shape)
-    # the truth in the frame of the stable terrain (what the correction aligns on)
-    frame = {n: float(np.median(truth[n][stable & np.isfinite(truth[n])])) for n in truth}
-    truth = {n: truth[n] - frame[n] for n in truth}
-    # cells whose window straddles the fault mix both blocks: left out of the per-cell errors
-    near = np.zeros(shape, bool) if distance is None else np.abs(distance) < 0.5 * spec.window * res + spec.step * res
-    doc: dict = {"frame": {n: -frame[n] for n in frame}, "components": {}}
-    for n in COMPONENTS:
-        err = fields[n] - truth[n]
-        ok = np.isfinite(err) & ~near
-        doc["components"][n] = {
-            "all": error_stats(err[ok]), "stable": error_stats(err[ok & stable]), "moving": error_stats(err[ok & ~stable]),
-            "within_2_sigma": coverage(err[ok], sigmas[n][ok]),
-        }
-        doc["components"][n]["all"]["nmad_px"] = doc["components"][n]["all"].get("nmad", np.nan) / res
-    if distance is not None and fault_doc is not None:
-        strip = tuple(fault_doc["strip_m"])
-        ev_p = ev["params"]
-        sv = np.asarray(ev_p.strike)
-        nv = np.asarray(ev_p.normal)
-        tcomp = {"along_strike": truth["dE"] * sv[0] + truth["dN"] * sv[1],
-                 "across_strike": truth["dE"] * nv[0] + truth["dN"] * nv[1], "dU": truth["dU"]}
-        off = {}
-        for name, t in tcomp.items():
-            meas = fault_doc["offsets"].get(name)
-            if meas is None:
-                continue
-            valid = np.isfinite(fields["dE"]) & np.isfinite(fields["dU"] if name == "dU" else fields["dE"])
-            tt = throw_across(t, distance, strip, valid)["throw"]
-            off[name] = {"measured": meas["offset"], "truth": tt, "error": meas["offset"] - tt,
-                         "stated_error": meas["error"]}
-        off["nominal"] = {"slip": float(ev_p.slip), "throw": float(ev_p.throw)}
-        doc["offsets"] = off
-        prof = fault_doc["profiles"]
-        edges = np.asarray(prof["distance_m"])
-        bw = edges[1] - edges[0] if edges.size > 1 else 1.0
-        k = np.digitize(distance, np.concatenate([edges - bw / 2, [edges[-1] + bw / 2]])) - 1
-        for name, t in tcomp.items():
-            prof["truth_" + name] = [float(np.median(t[k == b])) if (k == b).any() else float("nan")
-                                     for b in range(edges.size)]
-    if ev["params"].uplift:
-        # the uplift where it exceeds half its peak, away from the fault: mean dU error there
-        up = _uplift_share(ev["params"], scene, x, y)
-        sel = (up > 0.5) & np.isfinite(fields["dU"]) & ~near
-        if sel.any():
-            doc["uplift"] = {"cells": int(sel.sum()), "measured_mean": float(np.mean(fields["dU"][sel])),
-                             "truth_mean": float(np.mean(truth["dU"][sel])),
-                             "error": float(np.mean(fields["dU"][sel] - truth["dU"][sel]))}
-    scene_dir = out / "scene"
-    if cog:
-        for n in COMPONENTS:
-            da_ = xr.DataArray(truth[n].astype(np.float32), dims=("y", "x"), coords={"y": y, "x": x})
-            write_cog(da_.rio.write_crs(crs).rio.write_transform(transform), scene_dir / f"true_{n}.tif")
+    doc, truth = score_fields(fields, sigmas, stable, grid, scene_truth(scene), window=window, fault=fault,
+                              fault_doc=fault_doc)
+    if fault_doc is not None and "profiles" in doc:
+        fault_doc["profiles"].update(doc.pop("profiles"))
+    if cogs is not None:
+        write_truth_cogs(truth, grid, cogs)
     return doc
-
-
-def _fine_like(transform, crs, step: int, shape):
-    """The DSM grid under the field, as an (in-memory) template to sample truth rasters on."""
-    import xarray as xr
-    from affine import Affine
-
-    t = Affine(transform.a / step, 0, transform.c, 0, transform.e / step, transform.f)
-    ny, nx = shape[0] * step, shape[1] * step
-    x = t.c + (np.arange(nx) + 0.5) * t.a
-    yy = t.f + (np.arange(ny) + 0.5) * t.e
-    return xr.DataArray(np.zeros((ny, nx), np.float32), dims=("y", "x"), coords={"y": yy, "x": x}).rio.write_crs(
-        crs).rio.write_transform(t)
-
-
-def _uplift_share(ev, scene, x, y) -> np.ndarray:
-    """The uplift's shape (0..1) on the field cells (local metres: minus the scene origin)."""
-    xx = np.asarray(x)[None, :] - scene.origin[0] - ev.uplift_center[0]
-    yy = np.asarray(y)[:, None] - scene.origin[1] - ev.uplift_center[1]
-    g = np.exp(-0.5 * (xx**2 + yy**2) / ev.uplift_sigma**2)
-    if ev.still == "left":
-        nx_, ny_ = ev.normal
-        side = ((np.asarray(x)[None, :] - scene.origin[0] - ev.fault_point[0]) * nx_
-                + (np.asarray(y)[:, None] - scene.origin[1] - ev.fault_point[1]) * ny_) >= 0
-        g = np.where(side, g, 0.0)
-    return g
 
 
 def _figures(ds, fields, stable, fault, metrics, out: Path, dout: Path) -> None:

@@ -1,5 +1,6 @@
 """Image-space disparity of a rectified pair with the same cost and
-aggregation as the object-space matcher (used to validate them).
+aggregation as the object-space matcher: a test helper that validates
+them on Middlebury (``test_stereo.py``), not part of the package.
 
 Conventions
 -----------
