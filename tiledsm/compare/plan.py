@@ -38,7 +38,6 @@ def plan_compare(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, n
 
     from tiledsm.compare.recipe import CompareRecipe
     from tiledsm.plan.dsm import refuse_or_warn
-    from tiledsm.plan.recipes import polygons_touch
     from tiledsm.recipes import spelling
 
     spelled = {**spelling(CompareRecipe, by_option=plan.command == "compare"), "out": "--out"}
@@ -65,7 +64,7 @@ def plan_compare(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, n
     if spec.stable_mask:
         from affine import Affine
 
-        from tiledsm.compare.stable import exclusion_mask, read_polygons
+        from tiledsm.compare.stable import exclusion_mask, polygons_touch, read_polygons
 
         name = spelled["compare.stable_mask"]
         mask = existing_file(spec.stable_mask, name)

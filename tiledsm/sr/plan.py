@@ -6,10 +6,12 @@ and the lazy tiled graph is built and counted (:attr:`Plan.product`)."""
 
 from __future__ import annotations
 
+from typing import Sequence
+
 from tiledsm.errors import InvalidOptionError
 from tiledsm.plan.core import InputInfo, Plan, check_earlier_run, existing_file, readable_raster
 
-__all__ = ["plan_sr"]
+__all__ = ["plan_sr", "check_sr_weights"]
 
 
 def plan_sr(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names=None) -> Plan:
@@ -32,7 +34,6 @@ def plan_sr(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names=
     ------
     InputFileError, InvalidOptionError, SRError
     """
-    from tiledsm.plan.recipes import check_sr_weights
     from tiledsm.recipes import spelling
     from tiledsm.sr.recipe import SRRecipe, product_name
 
@@ -84,3 +85,17 @@ def plan_sr(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names=
     plan.reuse = (f"nothing: {product.name} is written whole, atomically" +
                   (" (replacing the one of the same recipe there)" if product.exists() else ""))
     return plan
+
+
+def check_sr_weights(models: Sequence[str], scale: int, scale_name: str, remedy: str) -> None:
+    """Refuse an SR scale for which a requested network has no shipped
+    weights; the message names ``scale_name`` and ends with ``remedy``
+    (what to do instead, in the caller's options)."""
+    from tiledsm.sr.registry import MODELS, WEIGHTLESS, available_weights, weights_path
+
+    missing = [m for m in models if m in MODELS and m not in WEIGHTLESS and not weights_path(m, scale).exists()]
+    if missing:
+        have = ", ".join(f"{n} x{s}" for n, s in available_weights()) or "none"
+        raise InvalidOptionError(
+            f"{scale_name} {scale}: no shipped weights for {', '.join(missing)} at x{scale} (shipped: {have}); {remedy}"
+        )

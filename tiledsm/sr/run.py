@@ -27,10 +27,11 @@ def run_sr(recipe, out: Path, cluster=None, overwrite: bool = False, plan=None) 
     from tiledsm.sr.recipe import product_name
     from tiledsm.workflows.common import write_json
 
-    if plan is None or plan.product is None:
-        from tiledsm.plan import plan_recipe
+    if plan is None or plan.product is None:  # called on its own, not by run_recipe
+        from tiledsm.plan.core import new_plan
+        from tiledsm.sr.plan import plan_sr
 
-        plan = plan_recipe(recipe, out, cluster, overwrite=overwrite)
+        plan = plan_sr(new_plan("run", out, cluster), recipe, cluster, overwrite=overwrite)
     hr = plan.product
     product = out / product_name(recipe)
     t0 = time.perf_counter()
