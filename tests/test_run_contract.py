@@ -12,17 +12,14 @@ grid, in chunks of 64 cells.
 from __future__ import annotations
 
 import json
-import os
-import signal
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
+from tests.contract import ok, refused_while_held, run
 from tiledsm.io import open_product
 from tiledsm.synth import make_scene
 
@@ -32,15 +29,6 @@ pytestmark = pytest.mark.slow  # four small DSM runs in subprocesses
 def run_cmd(recipe: Path, out: Path) -> list[str]:
     return [sys.executable, "-m", "tiledsm", "run", str(recipe), "--out", str(out), "--scheduler", "synchronous",
             "--no-progress"]
-
-
-def run(cmd: list[str], timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
-
-
-def ok(r: subprocess.CompletedProcess) -> subprocess.CompletedProcess:
-    assert r.returncode == 0, f"rc {r.returncode}\n--- stdout\n{r.stdout[-2000:]}\n--- stderr\n{r.stderr[-3000:]}"
-    return r
 
 
 def heights(out: Path) -> np.ndarray:
@@ -88,25 +76,6 @@ def test_a_second_run_into_a_held_folder_is_refused(recipe, finished, tmp_path):
     out = tmp_path / "busy"
     other = tmp_path / "other.yaml"  # another recipe into the same folder
     other.write_text(recipe.read_text().replace("levels: 2", "levels: 1"))
-    with open(tmp_path / "first.log", "w") as log:
-        first = subprocess.Popen(run_cmd(recipe, out), stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
-        try:
-            deadline = time.monotonic() + 180
-            while not (out / ".tiledsm.lock").exists():
-                assert first.poll() is None, "the first run ended before taking the lock"
-                assert time.monotonic() < deadline, "no lock within 180 s"
-                time.sleep(0.02)
-            second = run(run_cmd(other, out), timeout=120)
-            first_alive = first.poll() is None
-            first.wait(timeout=300)
-        finally:
-            if first.poll() is None:
-                os.killpg(first.pid, signal.SIGKILL)
-                first.wait(timeout=30)
-    assert second.returncode == 2 and "Traceback" not in second.stderr, second.stderr[-3000:]
-    lines = [ln for ln in second.stderr.splitlines() if ln.startswith("tiledsm run: error:")]
-    assert len(lines) == 1 and str(out) in lines[0] and "another" in lines[0], second.stderr[-3000:]
-    assert first_alive, f"the first run ended before the second was refused ({lines[0]})"
-    assert first.returncode == 0, (tmp_path / "first.log").read_text()[-3000:]
+    refused_while_held(run_cmd(recipe, out), run_cmd(other, out), out, "run", tmp_path / "first.log")
     np.testing.assert_array_equal(heights(out), heights(finished))
     assert yaml.safe_load((out / "recipe.resolved.yaml").read_text())["match"]["levels"] == 2

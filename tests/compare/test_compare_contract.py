@@ -14,11 +14,7 @@ and for a kill to land while the products are staged.
 from __future__ import annotations
 
 import json
-import os
-import signal
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +22,7 @@ import pytest
 import yaml
 
 from tests.compare.conftest import centres, terrain, write_tif
+from tests.contract import killed_when, ok, refused_while_held, run
 from tiledsm.io import open_product
 
 pytestmark = pytest.mark.slow  # four comparisons in subprocesses: ~2 min on the 2-core machine
@@ -38,23 +35,6 @@ PRODUCTS = ["dh.png", "dh.tif", "dh.zarr", "dh_hist.png", "dh_slope_classes.png"
 def compare_cmd(pair: tuple[Path, Path], out: Path, *extra: str) -> list[str]:
     return [sys.executable, "-m", "tiledsm", "compare", str(pair[0]), str(pair[1]), "--out", str(out),
             "--chunks", "256", "--no-progress", *extra]
-
-
-def run(cmd: list[str], timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
-
-
-def ok(r: subprocess.CompletedProcess) -> subprocess.CompletedProcess:
-    assert r.returncode == 0, f"rc {r.returncode}\n--- stdout\n{r.stdout[-2000:]}\n--- stderr\n{r.stderr[-3000:]}"
-    return r
-
-
-def wait_for(predicate, process: subprocess.Popen, what: str, timeout: float = 180) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert process.poll() is None, f"the run ended (rc {process.returncode}) before {what}"
-        assert time.monotonic() < deadline, f"no {what} within {timeout} s"
-        time.sleep(0.02)
 
 
 def metrics(out: Path) -> dict:
@@ -106,41 +86,18 @@ def test_a_run_writes_its_run_files_and_run_reproduces_it(pair, finished, tmp_pa
 
 def test_a_second_run_into_a_held_folder_is_refused(pair, finished, tmp_path):
     out = tmp_path / "busy"
-    with open(tmp_path / "first.log", "w") as log:
-        first = subprocess.Popen(compare_cmd(pair, out), stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
-        try:
-            wait_for(lambda: (out / ".tiledsm.lock").exists(), first, "the lock")
-            second = run(compare_cmd(pair, out, "--coreg", "none"), timeout=120)
-            first_alive = first.poll() is None
-            first.wait(timeout=300)
-        finally:
-            if first.poll() is None:
-                os.killpg(first.pid, signal.SIGKILL)
-                first.wait(timeout=30)
-    assert second.returncode == 2 and "Traceback" not in second.stderr, second.stderr[-3000:]
-    lines = [ln for ln in second.stderr.splitlines() if ln.startswith("tiledsm compare: error:")]
-    assert len(lines) == 1 and str(out) in lines[0] and "another" in lines[0], second.stderr[-3000:]
-    assert first_alive, f"the first run ended before the second was refused ({lines[0]})"
-    assert first.returncode == 0, (tmp_path / "first.log").read_text()[-3000:]
+    refused_while_held(compare_cmd(pair, out), compare_cmd(pair, out, "--coreg", "none"), out, "compare",
+                       tmp_path / "first.log")
     np.testing.assert_array_equal(dh(out), dh(finished))
     assert metrics(out) == metrics(finished)
-    assert not (out / ".tiledsm.lock").exists()
 
 
 def test_a_killed_run_reruns_to_the_same_products(pair, finished, tmp_path):
     out = tmp_path / "killed"
     cmd = compare_cmd(pair, out)
-    with open(tmp_path / "first.log", "w") as log:
-        p = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
-        try:  # killed while the products are written into their staging folder: mid-way
-            wait_for(lambda: out.is_dir() and any(q.name.startswith(".compare.tmp-") for q in out.iterdir()), p,
-                     "the staging folder")
-            os.killpg(p.pid, signal.SIGKILL)
-        finally:
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGKILL)
-            p.wait(timeout=30)
-    assert p.returncode == -signal.SIGKILL
+    # killed while the products are written into their staging folder: mid-way
+    killed_when(cmd, lambda: out.is_dir() and any(q.name.startswith(".compare.tmp-") for q in out.iterdir()),
+                "the staging folder", tmp_path / "first.log")
     left = sorted(q.name for q in out.iterdir())
     assert not set(left) & {"dh.zarr", "dh.tif", "metrics.json", "recipe.resolved.yaml", "report.html"}, left
     assert any(n.startswith(".compare.tmp-") for n in left), left

@@ -11,11 +11,7 @@ enough for a second process to meet the lock and for a kill to land while
 from __future__ import annotations
 
 import json
-import os
-import signal
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +19,7 @@ import pytest
 import rasterio
 import yaml
 
+from tests.contract import killed_when, ok, refused_while_held, run
 from tiledsm.geometry import RPC
 from tiledsm.synth import make_scene
 
@@ -32,30 +29,6 @@ pytestmark = pytest.mark.slow  # four VDSR runs in subprocesses: ~2.5 min on the
 def sr_cmd(image: Path, out: Path, *extra: str) -> list[str]:
     return [sys.executable, "-m", "tiledsm", "sr", str(image), str(out), "--model", "vdsr", "--scale", "2",
             "--chunk", "48", "--scheduler", "synchronous", "--no-progress", *extra]
-
-
-def run(cmd: list[str], timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
-
-
-def ok(r: subprocess.CompletedProcess) -> subprocess.CompletedProcess:
-    assert r.returncode == 0, f"rc {r.returncode}\n--- stdout\n{r.stdout[-2000:]}\n--- stderr\n{r.stderr[-3000:]}"
-    return r
-
-
-def error_line(r: subprocess.CompletedProcess, command: str = "sr") -> str:
-    assert r.returncode == 2 and "Traceback" not in r.stderr, f"rc {r.returncode}\n{r.stderr[-3000:]}"
-    lines = [ln for ln in r.stderr.splitlines() if ln.startswith(f"tiledsm {command}: error:")]
-    assert len(lines) == 1, r.stderr[-3000:]
-    return lines[0]
-
-
-def wait_for(predicate, process: subprocess.Popen, what: str, timeout: float = 180) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert process.poll() is None, f"the run ended (rc {process.returncode}) before {what}"
-        assert time.monotonic() < deadline, f"no {what} within {timeout} s"
-        time.sleep(0.02)
 
 
 @pytest.fixture(scope="module")
@@ -95,41 +68,18 @@ def test_a_run_writes_its_run_files_and_run_reproduces_it(scene, finished, tmp_p
 
 def test_a_second_run_into_a_held_folder_is_refused(scene, finished, tmp_path):
     out = tmp_path / "busy"
-    with open(tmp_path / "first.log", "w") as log:
-        first = subprocess.Popen(sr_cmd(scene.views[0], out), stdout=log, stderr=subprocess.STDOUT,
-                                 start_new_session=True)
-        try:
-            wait_for(lambda: (out / ".tiledsm.lock").exists(), first, "the lock")
-            second = run(sr_cmd(scene.views[0], out, "--model", "bicubic"), timeout=120)
-            first_alive = first.poll() is None
-            first.wait(timeout=300)
-        finally:
-            if first.poll() is None:
-                os.killpg(first.pid, signal.SIGKILL)
-                first.wait(timeout=30)
-    line = error_line(second)
-    assert first_alive, f"the first run ended before the second was refused ({line})"
-    assert str(out) in line and "another" in line, line
-    assert first.returncode == 0, (tmp_path / "first.log").read_text()[-3000:]
+    refused_while_held(sr_cmd(scene.views[0], out), sr_cmd(scene.views[0], out, "--model", "bicubic"), out, "sr",
+                       tmp_path / "first.log")
     assert (out / "sr.tif").read_bytes() == (finished / "sr.tif").read_bytes()
     assert yaml.safe_load((out / "recipe.resolved.yaml").read_text())["sr"]["model"] == "vdsr"
-    assert not (out / ".tiledsm.lock").exists()
 
 
 def test_a_killed_run_reruns_to_the_same_bytes(scene, finished, tmp_path):
     out = tmp_path / "killed"
     cmd = sr_cmd(scene.views[0], out)
-    with open(tmp_path / "first.log", "w") as log:
-        p = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
-        try:  # killed while sr.tif is being written (its temporary exists): mid-way
-            wait_for(lambda: out.is_dir() and any(".sr.tif.tmp-" in q.name for q in out.iterdir()), p,
-                     "the product's temporary")
-            os.killpg(p.pid, signal.SIGKILL)
-        finally:
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGKILL)
-            p.wait(timeout=30)
-    assert p.returncode == -signal.SIGKILL
+    # killed while sr.tif is being written (its temporary exists): mid-way
+    killed_when(cmd, lambda: out.is_dir() and any(".sr.tif.tmp-" in q.name for q in out.iterdir()),
+                "the product's temporary", tmp_path / "first.log")
     left = sorted(q.name for q in out.iterdir())
     assert "sr.tif" not in left and "metrics.json" not in left and "recipe.resolved.yaml" not in left, left
     assert any(".sr.tif.tmp-" in n for n in left), left

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from typing import Any, Sequence
 
-from tiledsm.errors import InvalidOptionError, NoOverlapError
+from tiledsm.errors import NoOverlapError
 from tiledsm.compare.stable import polygons_touch
 from tiledsm.plan.core import FieldNames, InputInfo, Limits, Plan, RECIPE_NAMES, existing_file, new_plan
 from tiledsm.sr.plan import check_sr_weights
