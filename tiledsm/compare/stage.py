@@ -396,7 +396,8 @@ def _as_input(x, chunks):
 
 
 def _move_into(staging: Path, out: Path) -> None:
-    for item in staging.iterdir():
+    # metrics.json last: a kill between two moves never leaves it describing products not yet in place
+    for item in sorted(staging.iterdir(), key=lambda p: p.name == "metrics.json"):
         final = out / item.name
         if final.exists():
             if final.is_dir():
