@@ -125,7 +125,7 @@ class Plan:
     command : str
         The ``tiledsm`` command (``dsm``, ``run``, ``sr``, ``compare``).
     out : pathlib.Path
-        Absolute output folder (or file, for ``sr``).
+        Absolute output folder.
     cluster : str
         Where the run would compute.
     inputs : list of InputInfo
