@@ -226,12 +226,13 @@ CASES = [
     Case("dsm-device-absent", dsm("--device", "cuda:64"), lambda f: ["--device", "cuda:64"]),
     Case("dsm-memory-per-worker-not-a-size", dsm("--memory-per-worker", "lots"), lambda f: ["--memory-per-worker", "lots"]),
     # --- sr
-    Case("sr-missing-input", lambda f, out: ["sr", str(f["root"] / "nope.tif"), str(out / "sr.tif")], lambda f: ["nope.tif"]),
-    Case("sr-scale-without-weights", lambda f, out: ["sr", str(f["v0"]), str(out / "sr.tif"), "--model", "srcnn", "--scale", "3"],
+    Case("sr-missing-input", lambda f, out: ["sr", str(f["root"] / "nope.tif"), str(out)], lambda f: ["nope.tif"]),
+    Case("sr-scale-without-weights", lambda f, out: ["sr", str(f["v0"]), str(out), "--model", "srcnn", "--scale", "3"],
          lambda f: ["--scale"]),
-    Case("sr-truncated-input", lambda f, out: ["sr", str(f["truncated"]), str(out / "sr.tif")], lambda f: ["truncated.tif"]),
-    Case("sr-output-exists", lambda f, out: ["sr", str(f["v0"]), str(f["earlier_sr"]), "--model", "bicubic"],
-         lambda f: ["earlier_sr.tif", "--overwrite"]),
+    Case("sr-truncated-input", lambda f, out: ["sr", str(f["truncated"]), str(out)], lambda f: ["truncated.tif"]),
+    # the command's older form named the output file: OUT is now the run folder
+    Case("sr-output-is-a-file-name", lambda f, out: ["sr", str(f["v0"]), str(f["earlier_sr"]), "--model", "bicubic"],
+         lambda f: ["earlier_sr.tif", "OUT", "run folder", "sr.tif"]),
     # --- compare
     Case("compare-missing", lambda f, out: ["compare", str(f["truth"]), str(f["root"] / "nope.tif"), "--out", str(out)],
          lambda f: ["nope.tif"]),
@@ -309,8 +310,6 @@ CASES = [
 @pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
 def test_bad_input_is_one_clear_line(k, case, tmp_path):
     out = tmp_path / "out"
-    if case.id.startswith("sr-"):
-        out.mkdir()  # sr writes a file: its folder exists, the input is what is wrong
     argv = case.argv(k, out)
     r = subprocess.run([sys.executable, "-m", "tiledsm", *argv], capture_output=True, text=True, timeout=300,
                        cwd=tmp_path)
@@ -475,12 +474,12 @@ def read_only_folder(tmp_path, mounted) -> Path:
 def test_unwritable_output_is_refused_by_the_plan(k, tmp_path, read_only_folder, command, where):
     out = read_only_folder if where == "the-folder" else read_only_folder / "new" / "out"
     argv = (["dsm", str(k["v0"]), str(k["v1"]), "--out", str(out)] if command == "dsm"
-            else ["sr", str(k["v0"]), str(out / "sr.tif"), "--model", "bicubic"])
+            else ["sr", str(k["v0"]), str(out), "--model", "bicubic"])
     r = subprocess.run([sys.executable, "-m", "tiledsm", *argv], capture_output=True, text=True, timeout=120, cwd=tmp_path)
     line = _error_line(r, command)
     reason = "read-only file system" if os.geteuid() == 0 else "permission denied"
     assert f"{read_only_folder}: " in line and reason in line, line
-    assert ("--out" if command == "dsm" else "OUTPUT") in line, line
+    assert "--out" in line, line  # sr's OUT is its --out
     assert list(read_only_folder.iterdir()) == []
 
 
@@ -492,14 +491,14 @@ def test_full_disk_is_one_line_naming_the_output(k, tmp_path, mounted, command):
     ``dsm``'s store fills the disk (zarr's ``OSError`` without a file name):
     one line naming --out."""
     disk = mounted("size=120k")
-    out = disk / ("out" if command == "dsm" else "sr.tif")
+    out = disk / "out"
     argv = (["dsm", str(k["v0"]), str(k["v1"]), "--out", str(out), "--scheduler", "synchronous", "--no-progress"]
             if command == "dsm" else ["sr", str(k["v0"]), str(out), "--model", "bicubic"])
     r = subprocess.run([sys.executable, "-m", "tiledsm", *argv], capture_output=True, text=True, timeout=300, cwd=tmp_path)
     line = _error_line(r, command)
     if command == "sr":
-        assert f"{out}: cannot write it (" in line and "0.117 MiB free on its disk" in line, line
-        assert list(disk.iterdir()) == []
+        assert f"{out}: cannot write it (" in line and "MiB free on its disk" in line, line  # the OUT given
+        assert sorted(p.name for p in out.iterdir()) == ["run.log"]  # no product, no temporary, no metrics
     else:
         assert line.endswith(f"error: {out}: No space left on device (writing into it)"), line
         assert not (out / "metrics.json").exists() and not (out / "dsm.tif").exists()
@@ -523,14 +522,14 @@ def test_a_write_that_fails_mid_run_is_one_line(k, tmp_path, monkeypatch, capsys
     monkeypatch.setattr(export, "_write_gtiff", full)
     out = tmp_path / "out"
     argv = (["dsm", str(k["v0"]), str(k["v1"]), "--out", str(out), "--scheduler", "synchronous", "--no-progress"]
-            if command == "dsm" else ["sr", str(k["v0"]), str(tmp_path / "sr.tif"), "--model", "bicubic"])
+            if command == "dsm" else ["sr", str(k["v0"]), str(out), "--model", "bicubic"])
     assert main(argv) == 2
     err = capsys.readouterr().err
     lines = [ln for ln in err.splitlines() if ln.startswith(f"tiledsm {command}: error:")]
     assert len(lines) == 1 and "Traceback" not in err, err
     name = "dsm.tif" if command == "dsm" else "sr.tif"
     assert f"/.{name}.tmp-" in lines[0] and lines[0].endswith(": No space left on device"), lines[0]
-    left = [p.name for p in (out if command == "dsm" else tmp_path).iterdir() if ".tmp-" in p.name]
+    left = [p.name for p in out.iterdir() if ".tmp-" in p.name]
     assert not left, left
 
 

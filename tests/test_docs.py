@@ -301,5 +301,5 @@ def test_guide_commands_on_synthetic_scenes_run_as_shown(tmp_path):
     # the SR quick start: the super-resolved image is twice the low-resolution one
     import rasterio
 
-    with rasterio.open(runs / "sr" / "lr.tif") as lr, rasterio.open(runs / "sr" / "sr.tif") as sr:
+    with rasterio.open(runs / "sr" / "lr.tif") as lr, rasterio.open(runs / "sr" / "x2" / "sr.tif") as sr:
         assert (sr.width, sr.height) == (2 * lr.width, 2 * lr.height)

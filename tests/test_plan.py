@@ -175,9 +175,9 @@ def test_plan_resolves_every_path_to_an_absolute_one(scene, tmp_path, monkeypatc
 
 
 def test_dry_run_of_sr_compare_and_run(scene, tmp_path, capsys):
-    out = tmp_path / "hr.tif"
+    out = tmp_path / "hr"
     assert main(["sr", str(scene.views[0]), str(out), "--model", "bicubic", "--chunk", "128", "--dry-run"]) == 0
-    assert "512 x 512 px output (x2)" in capsys.readouterr().out and not out.exists()
+    assert "512 x 512 px output (x2) in sr.tif" in capsys.readouterr().out and not out.exists()
     assert main(["compare", str(scene.truth_dsm), str(scene.truth_dsm), "--out", str(tmp_path / "c"), "--dry-run"]) == 0
     assert "OTHER covers 100% of it" in capsys.readouterr().out and not (tmp_path / "c").exists()
     path = tmp_path / "r.yaml"
@@ -233,7 +233,7 @@ def test_workers_below_one_are_refused(scene, tmp_path, capsys, command, workers
         "dsm": dsm_argv(scene, tmp_path / "o", *P1),
         "run": ["run", str(tmp_path / "missing.yaml"), "--out", str(tmp_path / "o")],
         "compare": ["compare", str(scene.truth_dsm), str(scene.truth_dsm), "--out", str(tmp_path / "o")],
-        "sr": ["sr", str(scene.views[0]), str(tmp_path / "o.tif")],
+        "sr": ["sr", str(scene.views[0]), str(tmp_path / "o")],
     }[command]
     argv = [a for a in argv if a != "synchronous" and a != "--scheduler"]
     line = refused(argv + ["--workers", workers], capsys)
@@ -309,7 +309,7 @@ def test_given_height_range_missing_the_tie_points_is_refused(scene, tmp_path, c
 
 def test_sr_scale_without_weights_is_refused(scene, tmp_path, capsys):
     """Issue reproduction 5: sr.scale 3 passed the schema and failed much later."""
-    line = refused(["sr", str(scene.views[0]), str(tmp_path / "x3.tif"), "--model", "srcnn", "--scale", "3"], capsys)
+    line = refused(["sr", str(scene.views[0]), str(tmp_path / "x3"), "--model", "srcnn", "--scale", "3"], capsys)
     assert "--scale 3: no shipped weights for srcnn at x3" in line and "--weights" in line, line
     path = tmp_path / "sr.yaml"
     path.write_text(yaml.safe_dump({"pipeline": "sr_dsm", "input": {"synth": {"size": 128}},
@@ -530,8 +530,11 @@ EMITTERS = {
     "tiledsm/plan/core.py": ("dsm", "run"),
     "tiledsm/plan/dsm.py": ("dsm", "run"),
     "tiledsm/plan/recipes.py": ("dsm", "run"),
-    "tiledsm/plan/stages.py:plan_sr": ("sr",),
-    "tiledsm/plan/stages.py:plan_compare": ("compare",),
+    "tiledsm/sr/plan.py": ("sr", "run"),
+    "tiledsm/compare/plan.py": ("compare", "run"),
+    "tiledsm/sr/recipe.py": ("sr", "run"),
+    "tiledsm/compare/recipe.py": ("compare", "run"),
+    "tiledsm/plan/core.py:check_earlier_run": ("dsm", "run", "sr", "compare"),
     "tiledsm/plan/imagery.py:plan_ortho": ("ortho",),
     "tiledsm/plan/imagery.py:plan_orient": ("orient",),
     "tiledsm/io/lock.py:_refuse_or_take_over": ("dsm", "run", "compare", "ortho", "orient"),
@@ -594,7 +597,8 @@ def test_every_option_a_message_names_exists_in_the_command_help():
 
 
 @pytest.mark.parametrize("command, model", [
-    ("dsm", "tiledsm.workflows.dsm:DSMRecipe"), ("displace", "tiledsm.workflows.displace:DisplaceRecipe")])
+    ("dsm", "tiledsm.workflows.dsm:DSMRecipe"), ("displace", "tiledsm.workflows.displace:DisplaceRecipe"),
+    ("sr", "tiledsm.sr.recipe:SRRecipe"), ("compare", "tiledsm.compare.recipe:CompareRecipe")])
 def test_every_spec_option_exists_in_its_command(command, model):
     """The options a command's spec names in its fields' metadata (what its
     errors print, :func:`tiledsm.recipes.options_of`) are the command's."""

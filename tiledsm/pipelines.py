@@ -1,7 +1,8 @@
 """The pipelines: one registry of what ``pipeline:`` may name in a recipe.
 
-Each pipeline is a workflow module (:mod:`tiledsm.workflows`) holding its
-recipe model and its runner; :data:`PIPELINES` lists them, explicitly, and
+Each pipeline is a workflow module (:mod:`tiledsm.workflows`) or a stage
+package (``tiledsm.sr``, ``tiledsm.compare``: its ``recipe``, ``plan`` and
+``run`` modules) holding its recipe model and its runner; :data:`PIPELINES` lists them, explicitly, and
 is the only list: :func:`load_recipe` validates a recipe against the
 model its ``pipeline`` names, :func:`run_recipe` plans it, locks the run
 folder and calls the runner. A runner takes a validated recipe and a run
@@ -25,9 +26,15 @@ from typing import Any, Callable
 from pydantic import BaseModel, ValidationError
 
 from tiledsm.cluster import ClusterConfig
+from tiledsm.compare.plan import plan_compare
+from tiledsm.compare.recipe import CompareRecipe
+from tiledsm.compare.run import run_compare
 from tiledsm.errors import RecipeError
 from tiledsm.plan.dsm import plan_dsm
 from tiledsm.recipes import dump_resolved, format_errors, read_recipe
+from tiledsm.sr.plan import plan_sr
+from tiledsm.sr.recipe import SRRecipe
+from tiledsm.sr.run import run_sr
 from tiledsm.workflows.common import setup_log, withdraw_products
 from tiledsm.workflows.deformation import DeformationRecipe, run_deformation
 from tiledsm.workflows.displace import DisplaceRecipe, run_displace
@@ -65,6 +72,8 @@ PIPELINES: dict[str, Pipeline] = {
     "ortho_sr": Pipeline(OrthoSRRecipe, run_ortho_sr),
     "train_sr": Pipeline(TrainSRRecipe, run_train_sr),
     "displace": Pipeline(DisplaceRecipe, run_displace),
+    "sr": Pipeline(SRRecipe, run_sr, plan=plan_sr),
+    "compare": Pipeline(CompareRecipe, run_compare, plan=plan_compare),
 }
 
 

@@ -25,7 +25,7 @@ from tiledsm.errors import RecipeError
 __all__ = [
     "StrictModel", "SynthInput", "InputSpec", "GridSpec", "MatchSpec", "JobQueueSpec", "ClusterSpec", "OutputSpec",
     "grid_from_spec", "dsm_params", "check_size", "load_cluster", "read_recipe", "format_errors", "dump_resolved",
-    "option", "options_of", "INPUT_KEYS",
+    "option", "options_of", "spelling", "INPUT_KEYS",
 ]
 
 
@@ -54,6 +54,13 @@ def options_of(model: type[BaseModel], prefix: str = "") -> dict[str, str]:
             if isinstance(arg, type) and issubclass(arg, BaseModel):
                 found.update(options_of(arg, path + "."))
     return found
+
+
+def spelling(model: type[BaseModel], by_option: bool) -> dict[str, str]:
+    """How messages name each field of ``model`` that has an option: the
+    option when a command built the recipe from its options (``by_option``),
+    the field path otherwise (a recipe file, ``tiledsm run``)."""
+    return {f: o if by_option else f for f, o in options_of(model).items()}
 
 
 class StrictModel(BaseModel):
@@ -320,7 +327,8 @@ def format_errors(path: Path, exc: ValidationError) -> str:
 #: recipe fields that hold input file paths, wherever they sit: relative ones are resolved against the
 #: recipe's folder (:func:`read_recipe`) and every plan checks they exist (outputs such as ``train.out`` are not)
 INPUT_KEYS = frozenset({"images", "rpcs", "reference", "like", "geoid", "stable_mask", "pre", "post", "dem", "truth_dh",
-                        "truth_mask", "gcps", "check_points", "cameras", "dsm", "truth"})
+                        "truth_mask", "gcps", "check_points", "cameras", "dsm", "truth", "ref", "other", "image",
+                        "weights"})
 #: recipe fields that hold input folders (resolved too)
 _FOLDER_KEYS = frozenset({"data_dirs"})
 

@@ -212,17 +212,13 @@ def test_no_overlap_and_bad_geojson(synth, tmp_path):
 
 
 def test_cli_compare(synth, tmp_path, capsys):
-    import argparse
-
-    from tiledsm.cli import compare as cli
+    from tiledsm.cli import main
 
     z = synth.terrain(*synth.centres((96, 96)))
     a = synth.write_tif(tmp_path / "a.tif", z)
     b = synth.write_tif(tmp_path / "b.tif", synth.terrain(*synth.centres((96, 96), 0.0, 1.0)))
-    parser = argparse.ArgumentParser()
-    cli.add_parser(parser.add_subparsers())
-    args = parser.parse_args(["compare", str(a), str(b), "--out", str(tmp_path / "o"), "--scheduler", "synchronous", "--chunks", "32"])
-    assert args.func(args) == 0
+    assert main(["compare", str(a), str(b), "--out", str(tmp_path / "o"), "--scheduler", "synchronous",
+                 "--chunks", "32"]) == 0
     printed = json.loads(capsys.readouterr().out)
     assert printed["coregistration"]["dx_px"] == pytest.approx(1.0, abs=0.02)
     assert (tmp_path / "o" / "metrics.json").exists()

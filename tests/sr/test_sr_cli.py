@@ -28,11 +28,12 @@ def test_sr_command_writes_scaled_rpc_and_nodata(shared_data, tmp_path):
         rpc = RPC.from_gdal(ds.rpcs.to_dict()).cropped(300, 400)
     img[:5, :7] = np.nan
     lr = write_geotiff_with_rpc(img, tmp_path / "lr.tif", rpc, nodata=float("nan"))
-    out = tmp_path / "hr.tif"
+    out = tmp_path / "hr"
     args = _parse(["sr", str(lr), str(out), "--model", "bicubic", "--scale", "2", "--chunk", "16",
                    "--scheduler", "synchronous", "--no-progress"])
+    args.command = "sr"
     assert args.func(args) == 0
-    with rasterio.open(out) as ds:
+    with rasterio.open(out / "sr.tif") as ds:
         hr = ds.read(1)
         back = RPC.from_gdal(ds.rpcs.to_dict())
         assert ds.tags()["sr_model"] == "bicubic"
@@ -92,10 +93,10 @@ def test_sr_x4_by_x2_networks_twice_beats_bicubic_on_a_real_crop(real_x4):
     root, truth, rpc = real_x4
     psnr, tags = {}, {}
     for model in ("bicubic", "srcnn", "vdsr"):
-        out = root / f"hr_{model}.tif"
+        out = root / f"hr_{model}"
         r = _tiledsm("sr", root / "lr.tif", out, "--model", model, "--scale", "4", "--scheduler", "synchronous")
         assert r.returncode == 0, r.stderr
-        with rasterio.open(out) as ds:
+        with rasterio.open(out / "sr.tif") as ds:
             hr = ds.read(1).astype(np.float64)
             tags[model] = ds.tags()
             got = ds.rpcs.to_dict()
@@ -132,16 +133,23 @@ def test_sr_x4_twice_is_tile_invariant(real_x4):
     assert RPC.from_gdal(whole.attrs["rpc"]).line_off == pytest.approx(rpc.scaled(4).line_off, abs=1e-9)
 
 
-def test_sr_refuses_an_existing_output_without_overwrite(real_x4):
+def test_sr_refuses_a_folder_of_another_run_without_overwrite(real_x4):
+    """OUT holding a run of other options (its recipe.resolved.yaml) is refused, one line naming OUT and
+    --overwrite, its product untouched; --overwrite replaces it; an output file name (the older form) is refused."""
     root, _, _ = real_x4
-    out = root / "exists.tif"
-    out.write_bytes(b"an earlier result")
-    r = _tiledsm("sr", root / "lr.tif", out, "--model", "bicubic", "--scale", "2")
+    out = root / "exists"
+    r = _tiledsm("sr", root / "lr.tif", out, "--model", "bicubic", "--scale", "2", "--scheduler", "synchronous")
+    assert r.returncode == 0, r.stderr
+    before = (out / "sr.tif").read_bytes()
+    r = _tiledsm("sr", root / "lr.tif", out, "--model", "bicubic", "--scale", "4")
     assert r.returncode == 2 and "Traceback" not in r.stderr
     line = r.stderr.strip().splitlines()[-1]
-    assert line.startswith("tiledsm sr: error:") and "exists.tif" in line and "--overwrite" in line
-    assert out.read_bytes() == b"an earlier result"
-    r = _tiledsm("sr", root / "lr.tif", out, "--model", "bicubic", "--scale", "2", "--overwrite")
+    assert line.startswith("tiledsm sr: error:") and f"{out}: OUT:" in line and "--overwrite" in line, line
+    assert (out / "sr.tif").read_bytes() == before
+    r = _tiledsm("sr", root / "lr.tif", out, "--model", "bicubic", "--scale", "4", "--overwrite",
+                 "--scheduler", "synchronous")
     assert r.returncode == 0, r.stderr
-    with rasterio.open(out) as ds:
-        assert ds.shape == (128, 128)
+    with rasterio.open(out / "sr.tif") as ds:
+        assert ds.shape == (256, 256)
+    r = _tiledsm("sr", root / "lr.tif", root / "hr.tif", "--model", "bicubic")
+    assert r.returncode == 2 and "OUT: is a run folder, not the output file" in r.stderr and not (root / "hr.tif").exists()

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
-from tiledsm.cli.run import add_cluster_arguments, add_plan_arguments, cluster_config
+from tiledsm.cli.run import add_cluster_arguments, add_overwrite_argument, add_plan_arguments, cluster_config
 
-__all__ = ["add_parser", "run", "add_warnings"]
+__all__ = ["add_parser", "compare_recipe", "run"]
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -15,7 +16,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="co-register two DSMs (Nuth & Kääb), difference them, write statistics and a report",
         description="Compare OTHER (e.g. post-event) with REF (pre-event): bring OTHER onto REF's grid, "
         "fit a horizontal shift and vertical bias on stable terrain, write dh.zarr, dh.tif, quick-looks, "
-        "metrics.json and report.html into --out. dh = OTHER_corrected - REF (metres).",
+        "report.html, metrics.json, recipe.resolved.yaml and run.log into --out. dh = OTHER_corrected - REF (metres).",
     )
     p.add_argument("ref", help="reference DSM (GeoTIFF or zarr)")
     p.add_argument("other", help="DSM to compare (GeoTIFF or zarr); any CRS/resolution")
@@ -27,58 +28,45 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--nmad-k", type=float, default=5.0, help="outliers: |dh - median| > K x NMAD")
     p.add_argument("--chunks", type=int, default=1024, help="tile edge in cells")
     add_cluster_arguments(p, default_scheduler="threads")
+    add_overwrite_argument(p)
     add_plan_arguments(p, large=False)
     p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
+def compare_recipe(args: argparse.Namespace):
+    """The ``pipeline: compare`` recipe of the command's options, every
+    path absolute; a bad value is an :class:`~tiledsm.errors.InvalidOptionError`
+    naming the option."""
+    from tiledsm.cli.run import absolute_path, recipe_of_options
+    from tiledsm.compare.recipe import CompareRecipe
+
+    return recipe_of_options(CompareRecipe, {
+        "pipeline": "compare",
+        "name": Path(args.out).name,
+        "input": {"ref": absolute_path(args.ref), "other": absolute_path(args.other)},
+        "compare": {"coreg": args.coreg, "deramp": args.deramp, "stable_mask": absolute_path(args.stable_mask),
+                    "max_slope_deg": args.max_slope, "nmad_k": args.nmad_k, "chunk": args.chunks},
+    })
+
+
+def print_compare_summary(metrics: dict) -> None:
+    """The shift, the vertical bias and the stable terrain's statistics, as JSON on stdout."""
     import json
 
-    from tiledsm.cli.run import print_warnings
-    from tiledsm.cluster import compute_context
-    from tiledsm.compare import CompareParams, CoregParams, compare_dsms
-    from tiledsm.plan import plan_compare
+    c = metrics["coregistration"]
+    s = metrics["statistics"]["stable"]
+    print(json.dumps({
+        "coregistration": {k: c[k] for k in ("dx", "dy", "dz", "dx_px", "dy_px", "dx_m", "dy_m")},
+        "stable": {k: s[k] for k in ("count", "median", "nmad", "rmse")},
+    }, indent=2))
+
+
+def run(args: argparse.Namespace) -> int:
+    from tiledsm.cli.run import plan_and_run
+    from tiledsm.plan import CLI_NAMES
 
     # compare's kernels release the GIL (numpy, numba nogil, GDAL): threads of this process beat a local cluster
     # of processes, which pays for starting workers and for moving blocks between them (benchmarks/compare.py
     # --schedulers cluster threads); a --cluster file (kind: local) keeps processes
     cluster = cluster_config(args)
-    plan = plan_compare(args.ref, args.other, args.out, stable_mask=args.stable_mask, chunks=args.chunks,
-                        cluster=cluster)
-    print_warnings("compare", plan.warnings)
-    if args.dry_run:
-        print(plan.summary())
-        return 0
-    paths = {i.role: i.path for i in plan.inputs}  # absolute
-    params = CompareParams(
-        coreg=args.coreg,
-        deramp=args.deramp,
-        coreg_params=CoregParams(nmad_k=args.nmad_k),
-        stable_mask=paths.get("--stable-mask"),
-        max_slope_deg=args.max_slope,
-        chunks=args.chunks,
-    )
-    with compute_context(cluster):
-        result = compare_dsms(paths["REF"], paths["OTHER"], plan.out, params)
-    add_warnings(plan.out / "metrics.json", plan.warnings)
-    c = result.metrics["coregistration"]
-    s = result.metrics["statistics"]["stable"]
-    print(json.dumps({
-        "out": str(result.out_dir),
-        "coregistration": {k: c[k] for k in ("dx", "dy", "dz", "dx_px", "dy_px", "dx_m", "dy_m")},
-        "stable": {k: s[k] for k in ("count", "median", "nmad", "rmse")},
-    }, indent=2))
-    return 0
-
-
-def add_warnings(path, warnings) -> None:
-    """Add ``warnings`` to the ``warnings`` list of a ``metrics.json`` (atomic rewrite)."""
-    import json
-    from pathlib import Path
-
-    from tiledsm.io import atomic_path
-
-    metrics = json.loads(Path(path).read_text())
-    metrics["warnings"] = list(metrics.get("warnings", [])) + [w for w in warnings if w not in metrics.get("warnings", [])]
-    with atomic_path(Path(path)) as tmp:
-        Path(tmp).write_text(json.dumps(metrics, indent=2, default=float))
+    return plan_and_run(compare_recipe(args), args, cluster, CLI_NAMES, summary=print_compare_summary)

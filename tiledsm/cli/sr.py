@@ -1,15 +1,14 @@
-"""``tiledsm sr IN OUT`` (super-resolve an image, RPC regenerated) and
+"""``tiledsm sr IMAGE OUT`` (super-resolve an image into a run folder, RPC regenerated) and
 ``tiledsm train-sr`` (train an SR network on offline images)."""
 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-from tiledsm.cli.run import add_cluster_arguments, add_plan_arguments, cluster_config
+from tiledsm.cli.run import add_cluster_arguments, add_overwrite_argument, add_plan_arguments, cluster_config
 
-__all__ = ["add_parser", "run_sr", "run_train", "write_sr"]
+__all__ = ["add_parser", "run_sr", "run_train", "sr_recipe", "run_folder"]
 
 
 def _blur_sigma(text: str) -> float | str:
@@ -26,28 +25,33 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "sr",
         help="super-resolve an image (bicubic, SRCNN, VDSR, SRMD) and regenerate its RPC",
-        description="Super-resolve IN tile by tile (halo = the model's receptive field) and write OUT: "
-        "a GeoTIFF with RPC tags (.tif) or a zarr store (.zarr). The RPC of OUT is the RPC of IN scaled "
-        "by --scale; nodata stays nodata.",
+        description="Super-resolve IMAGE tile by tile (halo = the model's receptive field) into the run folder "
+        "OUT: sr.tif (GeoTIFF with RPC tags; --format zarr: sr.zarr), metrics.json, recipe.resolved.yaml and "
+        "run.log. The RPC of the output is the RPC of IMAGE scaled by --scale; nodata stays nodata.",
     )
-    p.add_argument("input", help="image with an RPC (tags or sidecar)")
-    p.add_argument("output", help="output .tif (GeoTIFF + RPC tags) or .zarr")
-    p.add_argument("--model", default="srmd_official", choices=["bicubic", "srcnn", "srcnn_residual", "vdsr", "srmd", "srmd_official"],
-                   help="SR network (default: the published SRMD weights, the best on held-out images; "
-                        "srcnn is about 10x faster)")
-    p.add_argument("--scale", type=int, default=2)
+    p.add_argument("input", metavar="IMAGE", help="image with an RPC (tags or sidecar)")
+    p.add_argument("output", metavar="OUT", nargs="?", default=None,
+                   help="run folder (new, or from an earlier run of the same options); or give --out")
+    p.add_argument("--out", default=None, help="run folder (the same as OUT)")
+    p.add_argument("--format", default="tif", help="tif (sr.tif, GeoTIFF + RPC tags; default) or zarr (sr.zarr)")
+    p.add_argument("--model", default="srmd_official",
+                   help="SR network: bicubic, srcnn, srcnn_residual, vdsr, srmd or srmd_official (default: the "
+                        "published SRMD weights, the best on held-out images; srcnn is about 10x faster)")
+    p.add_argument("--scale", type=int, default=2,
+                   help="upscaling factor; a network without native weights at it applies its x2 weights "
+                        "repeatedly (a power of two; said in the output's sr_scheme tag)")
     p.add_argument("--weights", default=None, help="weights file (default: the shipped weights of --model at --scale)")
     p.add_argument("--blur-sigma", type=_blur_sigma, default=None,
                    help="SRMD: Gaussian blur sigma of the LR image, HR pixels, or 'bicubic' (LR made by bicubic downsampling)")
     p.add_argument("--noise", type=float, default=None, help="SRMD: noise standard deviation, digital numbers")
     p.add_argument("--bit-depth", type=int, default=None, help="sensor bit depth (default: smallest of 8/10/11/12/14/16 covering the data)")
-    p.add_argument("--normalisation", default="stretch", choices=["stretch", "full_scale"],
-                   help="value mapped to 1 before the network: the image's 99.9th percentile (default; the networks "
-                        "were trained on full-range images) or the full scale 2**bit-depth - 1")
+    p.add_argument("--normalisation", default="stretch",
+                   help="value mapped to 1 before the network: stretch, the image's 99.9th percentile (default; the "
+                        "networks were trained on full-range images), or full_scale, 2**bit-depth - 1")
     p.add_argument("--chunk", type=int, default=512, help="tile side, input pixels")
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="torch device (cuda only when available)")
-    p.add_argument("--overwrite", action="store_true", help="replace OUTPUT when it exists (default: refuse)")
+    p.add_argument("--device", default="cpu", help="torch device: cpu (default) or cuda (only when available)")
     add_cluster_arguments(p)
+    add_overwrite_argument(p)
     add_plan_arguments(p, large=False)
     p.set_defaults(func=run_sr)
 
@@ -70,45 +74,55 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     t.set_defaults(func=run_train)
 
 
+def run_folder(args: argparse.Namespace) -> str:
+    """The run folder of ``tiledsm sr IMAGE OUT`` (or ``--out OUT``); a
+    path ending in .tif/.tiff/.zarr (the command's older form, which named
+    the output file) is refused with the new form spelled out."""
+    from tiledsm.errors import InvalidOptionError
+
+    if args.output and args.out and Path(args.output).resolve() != Path(args.out).resolve():
+        raise InvalidOptionError(f"OUT: {args.output} and --out {args.out} name two folders; give one")
+    out = args.output or args.out
+    if out is None:
+        raise InvalidOptionError("OUT: give the run folder: tiledsm sr IMAGE OUT (it receives sr.tif and the run files)")
+    if Path(out).suffix.lower() in (".tif", ".tiff", ".zarr"):
+        raise InvalidOptionError(
+            f"{out}: OUT: is a run folder, not the output file: it receives sr.tif (or, with --format zarr, sr.zarr) "
+            f"beside metrics.json, recipe.resolved.yaml and run.log; give a folder, e.g. {Path(out).with_suffix('')}")
+    return out
+
+
+def sr_recipe(args: argparse.Namespace):
+    """The ``pipeline: sr`` recipe of the command's options, every path
+    absolute; a bad value is an :class:`~tiledsm.errors.InvalidOptionError`
+    naming the option."""
+    from tiledsm.cli.run import absolute_path, recipe_of_options
+    from tiledsm.sr.recipe import SRRecipe
+
+    spec = {"model": args.model, "scale": args.scale, "weights": absolute_path(args.weights),
+            "blur_sigma": args.blur_sigma, "noise": args.noise, "bit_depth": args.bit_depth,
+            "normalisation": args.normalisation, "chunk": args.chunk, "device": args.device}
+    return recipe_of_options(SRRecipe, {
+        "pipeline": "sr", "name": Path(args.out).name, "input": {"image": absolute_path(args.input)},
+        "sr": spec, "output": {"format": args.format},
+    })
+
+
+def print_sr_summary(metrics: dict) -> None:
+    """One line: the product, its size and the network."""
+    sr = metrics["sr"]
+    scheme = f" ({sr['scheme']})" if sr.get("scheme") else ""
+    print(f"{metrics['product']}: {metrics['shape'][0]} x {metrics['shape'][1]} px, model {sr['model']} "
+          f"x{sr['scale']}{scheme}")
+
+
 def run_sr(args: argparse.Namespace) -> int:
-    from tiledsm.cli.run import print_warnings
-    from tiledsm.plan import plan_sr
-    from tiledsm.sr.registry import SRError
+    from tiledsm.cli.run import plan_and_run
+    from tiledsm.plan import CLI_NAMES
 
+    args.out = run_folder(args)
     cluster = cluster_config(args)
-    if args.device == "cuda":
-        import torch
-
-        if not torch.cuda.is_available():
-            raise SRError("--device cuda: no CUDA device is available (use --device cpu)")
-    plan = plan_sr(args.input, args.output, model=args.model, scale=args.scale, weights=args.weights,
-                   chunk=args.chunk, cluster=cluster, overwrite=args.overwrite, device=args.device, blur_sigma=args.blur_sigma,
-                   noise=args.noise, bit_depth=args.bit_depth, normalisation=args.normalisation)
-    print_warnings("sr", plan.warnings)
-    if plan.product.attrs.get("sr_scheme"):
-        print(f"tiledsm sr: {args.model} has no native x{args.scale} weights: its {plan.product.attrs['sr_scheme']}",
-              file=sys.stderr)
-    if args.dry_run:
-        print(plan.summary())
-        return 0
-    return write_sr(plan.product, plan.out, args.scale, cluster)
-
-
-def write_sr(hr, out: Path, scale: int, cluster) -> int:
-    """Compute the lazy super-resolved image ``hr`` into ``out`` (GeoTIFF
-    with RPC tags, or zarr)."""
-    from tiledsm.cluster import compute_context
-    from tiledsm.io import scene_rpc, write_geotiff_with_rpc, write_zarr
-
-    with compute_context(cluster):
-        if out.suffix.lower() == ".zarr":
-            write_zarr(hr, out)
-        else:
-            tags = {k: v for k, v in hr.attrs.items() if k.startswith("sr_")}
-            write_geotiff_with_rpc(hr, out, scene_rpc(hr), nodata=float("nan"), dtype="float32", tags=tags)
-    scheme = f" ({hr.attrs['sr_scheme']})" if hr.attrs.get("sr_scheme") else ""
-    print(f"{out}: {hr.sizes['y']} x {hr.sizes['x']} px, model {hr.attrs['sr_model']} x{scale}{scheme}")
-    return 0
+    return plan_and_run(sr_recipe(args), args, cluster, CLI_NAMES, summary=print_sr_summary)
 
 
 def run_train(args: argparse.Namespace) -> int:

@@ -10,13 +10,15 @@ row of chunks plus ``cache_mib`` whatever the grid size.
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
 import dask
+import numpy as np
 import xarray as xr
 
-__all__ = ["cog_from_store"]
+__all__ = ["cog_from_store", "jsonable"]
 
 
 def cog_from_store(dh: xr.DataArray, path: str | os.PathLike, *, threads: str | int = "ALL_CPUS", cache_mib: int = 256) -> Path:
@@ -41,3 +43,19 @@ def cog_from_store(dh: xr.DataArray, path: str | os.PathLike, *, threads: str | 
 
     with rasterio.Env(GDAL_NUM_THREADS=str(threads), GDAL_CACHEMAX=int(cache_mib)), dask.config.set(scheduler="threads"):
         return write_cog(dh, path)
+
+
+def jsonable(obj):
+    """``obj`` with numpy scalars, paths and tuples made JSON values (a non-finite float: ``None``)."""
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, (np.floating, float)):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Sequence
 
 import dask.array as da
 import numpy as np
@@ -25,7 +26,7 @@ from affine import Affine
 
 from tiledsm.errors import InputFileError
 
-__all__ = ["read_polygons", "exclusion_mask", "exclusion_mask_lazy", "stable_cells"]
+__all__ = ["read_polygons", "exclusion_mask", "exclusion_mask_lazy", "stable_cells", "polygons_touch"]
 
 _POLY_TYPES = ("Polygon", "MultiPolygon")
 
@@ -149,3 +150,14 @@ def stable_cells(dh, slope_deg, excluded, median: float, nmad_value: float, k: f
     else:
         ok &= dh == dh
     return ok
+
+
+def polygons_touch(geoms: list[dict], box: Sequence[float]) -> bool:
+    """Whether any GeoJSON polygon's bounding box meets ``box``
+    ``(xmin, ymin, xmax, ymax)`` (same CRS)."""
+    for g in geoms:
+        rings = g["coordinates"] if g["type"] == "Polygon" else [r for p in g["coordinates"] for r in p]
+        xy = np.concatenate([np.asarray(r, float)[:, :2] for r in rings])
+        if xy[:, 0].min() <= box[2] and xy[:, 0].max() >= box[0] and xy[:, 1].min() <= box[3] and xy[:, 1].max() >= box[1]:
+            return True
+    return False

@@ -44,6 +44,7 @@ import uuid
 from dataclasses import asdict, dataclass, field, replace
 from functools import lru_cache, partial
 from pathlib import Path
+from typing import Sequence
 
 import dask
 import dask.array as da
@@ -54,6 +55,7 @@ import xarray as xr
 from affine import Affine
 
 from tiledsm.compare.align import AlignedPair, align_dsms, open_dsm
+from tiledsm.compare.export import jsonable
 from tiledsm.compare.coreg import (
     CoregParams,
     Coregistration,
@@ -394,7 +396,8 @@ def _as_input(x, chunks):
 
 
 def _move_into(staging: Path, out: Path) -> None:
-    for item in staging.iterdir():
+    # metrics.json last: a kill between two moves never leaves it describing products not yet in place
+    for item in sorted(staging.iterdir(), key=lambda p: p.name == "metrics.json"):
         final = out / item.name
         if final.exists():
             if final.is_dir():
@@ -405,22 +408,8 @@ def _move_into(staging: Path, out: Path) -> None:
     staging.rmdir()
 
 
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
-
-
-def compare_dsms(ref, other, out_dir: str | Path, params: CompareParams = CompareParams()) -> CompareResult:
+def compare_dsms(ref, other, out_dir: str | Path, params: CompareParams = CompareParams(),
+                 warnings: Sequence[str] = ()) -> CompareResult:
     """Compare two DSMs: co-register ``other`` on ``ref``, difference, measure, report.
 
     Parameters
@@ -433,6 +422,9 @@ def compare_dsms(ref, other, out_dir: str | Path, params: CompareParams = Compar
     out_dir : path
         Output folder (created); products listed in the module notes.
     params : CompareParams
+    warnings : sequence of str
+        What the run's plan found worth saying, written into
+        ``metrics.json`` (``warnings``).
 
     Returns
     -------
@@ -475,15 +467,16 @@ def compare_dsms(ref, other, out_dir: str | Path, params: CompareParams = Compar
             "slope_class": (("y", "x"), layers[1], {"flag_values": "0..n-1 255", "lower_bounds_percent": json.dumps(list(params.slope_classes))}),
         },
         coords=coords,
-        attrs={"ref": pair.ref.attrs["source"], "other": pair.other.attrs["source"], "coregistration": json.dumps(_jsonable(coreg.to_dict()))},
+        attrs={"ref": pair.ref.attrs["source"], "other": pair.other.attrs["source"], "coregistration": json.dumps(jsonable(coreg.to_dict()))},
     )
     ds = ds.rio.write_crs(pair.crs).rio.write_transform(pair.transform)
 
     out.mkdir(parents=True, exist_ok=True)
-    staging = out / f".compare-staging-{uuid.uuid4().hex[:8]}"
+    # a temporary's name (tiledsm.io.atomic.TEMPORARY): a killed run's staging is swept by the next run's lock
+    staging = out / f".compare.tmp-{uuid.uuid4().hex[:10]}"
     staging.mkdir()
     try:
-        products = _write_products(ds, pair, coreg, geoms, params, staging, t0, t_fit)
+        products = _write_products(ds, pair, coreg, geoms, params, staging, t0, t_fit, list(warnings))
         _move_into(staging, out)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
@@ -492,7 +485,8 @@ def compare_dsms(ref, other, out_dir: str | Path, params: CompareParams = Compar
     return CompareResult(out, coreg, metrics, {k: out / Path(v).name for k, v in products.items()})
 
 
-def _write_products(ds, pair, coreg, geoms, params, staging: Path, t0: float, t_fit: float) -> dict:
+def _write_products(ds, pair, coreg, geoms, params, staging: Path, t0: float, t_fit: float,
+                    warnings: list[str]) -> dict:
     """Write every product into ``staging``.
 
     One pass over the grid (one ``dask.compute``) writes ``dh.zarr`` and, from
@@ -563,8 +557,9 @@ def _write_products(ds, pair, coreg, geoms, params, staging: Path, t0: float, t_
             "exclusion_polygons": params.stable_mask, "n_polygons": len(geoms), "max_slope_deg": params.max_slope_deg,
             "outliers": f"|dh - {med:.4g}| > {params.coreg_params.nmad_k} x {s:.4g}",
         },
-        "params": _jsonable(asdict(params)),
+        "params": jsonable(asdict(params)),
         "histogram": {"lo": hs.lo, "hi": hs.hi, "bins": hs.bins, "median_nmad_resolution_m": (hs.hi - hs.lo) / hs.bins},
+        "warnings": warnings,
     }
 
     # ---- exports
@@ -588,7 +583,7 @@ def _write_products(ds, pair, coreg, geoms, params, staging: Path, t0: float, t_
         "fit": t_fit, "difference_statistics_zarr": t_pass, "cog": t_cog,
         "figures_report": time.perf_counter() - t3 - t_cog, "total": time.perf_counter() - t0,
     }
-    metrics = _jsonable(metrics)
+    metrics = jsonable(metrics)
     (staging / "metrics.json").write_text(json.dumps(metrics, indent=2))
     products["metrics"] = staging / "metrics.json"
     if params.report:

@@ -1,9 +1,9 @@
 """Plan a run before anything runs: check it, size it, refuse it in seconds.
 
 A :class:`Plan` is made before any cluster starts or any chunk is computed,
-by :func:`tiledsm.pipelines.plan_recipe` (``tiledsm dsm`` and ``tiledsm run``),
-:func:`plan_sr` (``tiledsm sr``), :func:`plan_compare`
-(``tiledsm compare``), :func:`plan_ortho` (``tiledsm ortho``) and
+by :func:`tiledsm.pipelines.plan_recipe` (``tiledsm dsm``, ``sr``, ``compare`` and ``run``:
+the plan of each pipeline is its stage's, :attr:`tiledsm.pipelines.Pipeline.plan`),
+:func:`plan_ortho` (``tiledsm ortho``) and
 :func:`plan_orient` (``tiledsm orient``). It
 
 - resolves every path to an absolute one (a relative ``--out`` then means
@@ -40,8 +40,8 @@ by :func:`tiledsm.pipelines.plan_recipe` (``tiledsm dsm`` and ``tiledsm run``),
 opened views, tie points and lazy DSM, so nothing is done twice.
 
 The package: :mod:`.core` (the plan, limits, shared checks), :mod:`.memory`
-(worker memory, level sizes), :mod:`.dsm`, :mod:`.recipes` (whole recipes)
-and :mod:`.stages` (``sr``, ``compare``), :mod:`.imagery` (``ortho``,
+(worker memory, level sizes), :mod:`.dsm`, :mod:`.recipes` (whole recipes),
+:mod:`.imagery` (``ortho``,
 ``orient``).
 
 Conventions: sizes in cells are ``rows x columns``; memory in bytes (MiB
@@ -77,10 +77,6 @@ from tiledsm.plan.recipes import (
     check_sr_weights,
     plan_inputs,
 )
-from tiledsm.plan.stages import (
-    plan_sr,
-    plan_compare,
-)
 from tiledsm.plan.imagery import (
     plan_ortho,
     plan_orient,
@@ -105,8 +101,6 @@ __all__ = [
     "check_sr_weights",
     "plan_dsm",
     "plan_inputs",
-    "plan_sr",
-    "plan_compare",
     "plan_ortho",
     "plan_orient",
     "WORKER_BASELINE_MIB",

@@ -131,7 +131,7 @@ class Plan:
     command : str
         The ``tiledsm`` command (``dsm``, ``run``, ``sr``, ``compare``).
     out : pathlib.Path
-        Absolute output folder (or file, for ``sr``).
+        Absolute output folder.
     cluster : str
         Where the run would compute.
     inputs : list of InputInfo
@@ -381,3 +381,24 @@ def seen_fraction(grid, views, height: float) -> float:
     return float(footprint_mask(grid, views, height, step).mean())
 
 
+
+
+def check_earlier_run(recipe, out: Path, overwrite: bool, name: str = "--out") -> None:
+    """Refuse to replace, without ``overwrite``, the products of an earlier
+    run of other inputs or parameters in the folder ``out``: a stage whose
+    products are rewritten whole (``sr``, ``compare``) resumes only its own
+    run, whose ``recipe.resolved.yaml`` equals ``recipe``'s resolved form.
+    A folder without one (new, or a run killed before it finished) is free.
+    The message names ``name`` (the option or field of the folder)."""
+    import yaml
+
+    stored = out / "recipe.resolved.yaml"
+    if overwrite or not stored.is_file():
+        return
+    try:
+        same = yaml.safe_load(stored.read_text()) == recipe.model_dump(mode="json")
+    except (OSError, yaml.YAMLError):
+        same = False
+    if not same:
+        raise InvalidOptionError(f"{out}: {name}: holds a run of other inputs or options ({stored.name}); pass "
+                                 "--overwrite to replace it, or choose another folder")

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from typing import Any, Sequence
 
-from tiledsm.errors import InvalidOptionError, NoOverlapError
+from tiledsm.errors import NoOverlapError
+from tiledsm.compare.stable import polygons_touch
 from tiledsm.recipes import INPUT_KEYS
 from tiledsm.plan.core import FieldNames, InputInfo, Plan, RECIPE_NAMES, existing_file
+from tiledsm.sr.plan import check_sr_weights
 
 
 # --------------------------------------------------------------------------- recipes
@@ -42,26 +44,6 @@ def _recipe_files(data: Any, where: str) -> list[tuple[str, str]]:
     return [(where, data)] if key in INPUT_KEYS and isinstance(data, str) else []
 
 
-def check_sr_weights(models: Sequence[str], scale: int, scale_name: str, remedy: str) -> None:
-    """Refuse an SR scale for which a requested network has no shipped
-    weights; the message names ``scale_name`` and ends with ``remedy``
-    (what to do instead, in the caller's options)."""
-    from tiledsm.sr.registry import WEIGHTLESS, available_weights, weights_path
-
-    missing = [m for m in models if m in _sr_networks() and m not in WEIGHTLESS and not weights_path(m, scale).exists()]
-    if missing:
-        have = ", ".join(f"{n} x{s}" for n, s in available_weights()) or "none"
-        raise InvalidOptionError(
-            f"{scale_name} {scale}: no shipped weights for {', '.join(missing)} at x{scale} (shipped: {have}); {remedy}"
-        )
-
-
-def _sr_networks() -> list[str]:
-    from tiledsm.sr.registry import MODELS
-
-    return MODELS.names()
-
-
 def _check_mask_sees_views(mask: str, images: Sequence[str], rpcs, name: str) -> None:
     """Refuse exclusion polygons that lie outside what the views see."""
     import numpy as np
@@ -84,18 +66,3 @@ def _check_mask_sees_views(mask: str, images: Sequence[str], rpcs, name: str) ->
             f"{mask}: {name}: no polygon lies in the scene the images see (lon/lat box "
             f"({lon0:.5f}, {lat0:.5f}, {lon1:.5f}, {lat1:.5f})): it would exclude nothing"
         )
-
-
-def polygons_touch(geoms: list[dict], box: Sequence[float]) -> bool:
-    """Whether any GeoJSON polygon's bounding box meets ``box``
-    ``(xmin, ymin, xmax, ymax)`` (same CRS)."""
-    import numpy as np
-
-    for g in geoms:
-        rings = g["coordinates"] if g["type"] == "Polygon" else [r for p in g["coordinates"] for r in p]
-        xy = np.concatenate([np.asarray(r, float)[:, :2] for r in rings])
-        if xy[:, 0].min() <= box[2] and xy[:, 0].max() >= box[0] and xy[:, 1].min() <= box[3] and xy[:, 1].max() >= box[1]:
-            return True
-    return False
-
-

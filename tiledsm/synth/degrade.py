@@ -5,7 +5,7 @@ convention), so its centre is at input index coordinate ``(j + .5) s - .5``
 and the output camera is exactly ``rpc.scaled(1 / s)`` (for georeferenced
 rasters the geotransform is scaled likewise).
 
-Methods (registry :data:`KERNELS`):
+Methods (registry :data:`tiledsm.sr.degradation.KERNELS`, the image formation SR inverts):
 
 - ``"bicubic"``: antialiased bicubic, as MATLAB's ``imresize`` and the SR
   literature's "bicubic x s" degradation: Keys' cubic kernel (``a = -0.5``)
@@ -27,37 +27,9 @@ import numpy as np
 from scipy import sparse
 
 from tiledsm.errors import InputFileError, TiledsmError
+from tiledsm.sr.degradation import KERNELS, gaussian_sigma
 
 __all__ = ["degrade", "gaussian_sigma", "resample_matrix", "KERNELS"]
-
-
-def _cubic(x, a=-0.5):
-    x = np.abs(x)
-    return np.where(
-        x <= 1, (a + 2) * x**3 - (a + 3) * x**2 + 1,
-        np.where(x < 2, a * x**3 - 5 * a * x**2 + 8 * a * x - 4 * a, 0.0),
-    )
-
-
-def _bicubic_kernel(scale, sigma):
-    return (lambda d: _cubic(d / scale)), 2.0 * scale
-
-
-def gaussian_sigma(scale: float, sigma: float | None = None) -> float:
-    """The Gaussian degradation's sigma, input pixels: ``sigma``, or half
-    the scale factor when it is not given."""
-    return 0.5 * scale if sigma is None else float(sigma)
-
-
-def _gaussian_kernel(scale, sigma):
-    s = gaussian_sigma(scale, sigma)
-    if s <= 0:
-        raise TiledsmError(f"degrade: gaussian sigma must be > 0, got {s}")
-    return (lambda d: np.exp(-0.5 * (d / s) ** 2)), 4.0 * s
-
-
-#: degradation kernels: name -> (scale, sigma) -> (kernel(distance in input px), support radius)
-KERNELS = {"bicubic": _bicubic_kernel, "gaussian": _gaussian_kernel}
 
 
 def resample_matrix(n_in: int, scale: float, method: str = "bicubic", sigma: float | None = None,

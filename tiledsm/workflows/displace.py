@@ -176,7 +176,7 @@ def plan_displace(recipe: DisplaceRecipe, out, cluster=None, *, overwrite: bool 
     ------
     InputFileError, GridError, NoOverlapError, InvalidOptionError
     """
-    from tiledsm.plan.core import InputInfo, existing_file, new_plan
+    from tiledsm.plan.core import InputInfo, check_earlier_run, existing_file, new_plan
 
     names = {**FIELD_NAMES, **(names or {})}
     plan = new_plan("displace", out, cluster)
@@ -213,28 +213,9 @@ def plan_displace(recipe: DisplaceRecipe, out, cluster=None, *, overwrite: bool 
     if recipe.fault_trace is not None:
         fault_on_grid(recipe.fault_trace, grid.crs, names["fault_trace"])
     plan.reuse = "nothing: the field is recomputed whole"
-    _check_earlier_run(recipe, plan.out, overwrite)
+    check_earlier_run(recipe, plan.out, overwrite)
     plan.product = (grid, orthos)
     return plan
-
-
-def _check_earlier_run(recipe, out: Path, overwrite: bool) -> None:
-    """Refuse to replace an earlier run of other inputs or options in
-    ``out`` without ``overwrite`` (its ``recipe.resolved.yaml`` differs)."""
-    import yaml
-
-    from tiledsm.errors import InvalidOptionError
-
-    stored = out / "recipe.resolved.yaml"
-    if overwrite or not stored.is_file():
-        return
-    try:
-        same = yaml.safe_load(stored.read_text()) == recipe.model_dump(mode="json")
-    except (OSError, yaml.YAMLError):
-        same = False
-    if not same:
-        raise InvalidOptionError(f"{out}: --out: holds a run of other inputs or options ({stored.name}); pass "
-                                 "--overwrite to replace it, or choose another folder")
 
 
 def fault_on_grid(trace, crs: str, name: str = "fault_trace"):

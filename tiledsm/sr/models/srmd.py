@@ -59,7 +59,7 @@ def bicubic_kernel(scale: int, size: int = KERNEL_SIZE) -> np.ndarray:
     shape, the one its degradation code describes. Its negative lobes are
     what a Gaussian cannot describe.
     """
-    from tiledsm.synth.degrade import KERNELS  # the same Keys kernel that makes the sr_dsm LR pairs
+    from tiledsm.sr.degradation import KERNELS  # the same Keys kernel that makes the sr_dsm LR pairs
 
     cubic, _ = KERNELS["bicubic"](scale, None)
     w = cubic(np.arange(size, dtype=float) - size // 2)
