@@ -63,10 +63,12 @@ def print_compare_summary(metrics: dict) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tiledsm.cli.run import plan_and_run
-    from tiledsm.plan import CLI_NAMES
+    from tiledsm.plan import FieldNames
+    from tiledsm.recipes import options_of
+    from tiledsm.compare.recipe import CompareRecipe
 
     # compare's kernels release the GIL (numpy, numba nogil, GDAL): threads of this process beat a local cluster
     # of processes, which pays for starting workers and for moving blocks between them (benchmarks/compare.py
     # --schedulers cluster threads); a --cluster file (kind: local) keeps processes
     cluster = cluster_config(args)
-    return plan_and_run(compare_recipe(args), args, cluster, CLI_NAMES, summary=print_compare_summary)
+    return plan_and_run(compare_recipe(args), args, cluster, FieldNames.of_options(options_of(CompareRecipe)), summary=print_compare_summary)

@@ -118,11 +118,13 @@ def print_sr_summary(metrics: dict) -> None:
 
 def run_sr(args: argparse.Namespace) -> int:
     from tiledsm.cli.run import plan_and_run
-    from tiledsm.plan import CLI_NAMES
+    from tiledsm.plan import FieldNames
+    from tiledsm.recipes import options_of
+    from tiledsm.sr.recipe import SRRecipe
 
     args.out = run_folder(args)
     cluster = cluster_config(args)
-    return plan_and_run(sr_recipe(args), args, cluster, CLI_NAMES, summary=print_sr_summary)
+    return plan_and_run(sr_recipe(args), args, cluster, FieldNames.of_options(options_of(SRRecipe)), summary=print_sr_summary)
 
 
 def run_train(args: argparse.Namespace) -> int:
