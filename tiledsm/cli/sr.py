@@ -50,7 +50,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         "networks were trained on full-range images), or full_scale, 2**bit-depth - 1")
     p.add_argument("--chunk", type=int, default=512, help="tile side, input pixels")
     p.add_argument("--device", default="cpu", help="torch device: cpu (default) or cuda (only when available)")
-    add_cluster_arguments(p)
+    # torch's convolutions release the GIL: threads of this process, as dsm and compare, start in no time and
+    # leave no worker processes behind a failed write (a full disk's error stays one line)
+    add_cluster_arguments(p, default_scheduler="threads")
     add_overwrite_argument(p)
     add_plan_arguments(p, large=False)
     p.set_defaults(func=run_sr)
