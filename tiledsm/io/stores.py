@@ -565,12 +565,14 @@ def write_resumable(
     Notes
     -----
     When ``obj.attrs`` holds a ``fingerprint`` (JSON of everything that
-    determines the result, :mod:`tiledsm.provenance`), it is stored with the
-    store at creation, and an existing finished or partial store is resumed
+    determines the result, :mod:`tiledsm.provenance`; a DataArray's too), it
+    is stored with the store at creation, and an existing finished or partial store is resumed
     only if its fingerprint is the same: otherwise
     :class:`~tiledsm.errors.FingerprintMismatchError` names what changed.
     """
     ds = _as_dataset(obj)
+    if isinstance(obj, xr.DataArray) and "fingerprint" in obj.attrs:
+        ds.attrs["fingerprint"] = obj.attrs["fingerprint"]  # the store's, as a Dataset's is
     variables = list(ds.data_vars)
     if not variables:
         raise ValueError(f"{path}: nothing to write (no data variables)")

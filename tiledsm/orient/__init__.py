@@ -23,7 +23,7 @@ _HOME = {name: module for module, names in (
     ("dem", ("ReferenceDEM",)),
     ("p2l", ("P2LParams", "P2LResult", "p2l_distances", "p2l_filter", "ransac_filter")),
     ("points", ("ControlPoints", "read_points")),
-    ("spec", ("OrientSpec", "orient_for_recipe", "polygon_exclusion")),
+    ("spec", ("OrientSpec", "OrientRecipe", "orient_for_recipe", "polygon_exclusion")),
     ("stage", ("Orientation", "OrientParams", "orient_images", "write_orientation")),
     ("tracks", ("Guide", "TrackParams", "Tracks", "coarse_guide", "tie_point_tracks")),
 ) for name in names}

@@ -1,10 +1,10 @@
 """Plan a run before anything runs: check it, size it, refuse it in seconds.
 
 A :class:`Plan` is made before any cluster starts or any chunk is computed,
-by :func:`plan_recipe` (``tiledsm dsm`` and ``tiledsm run``),
-:func:`plan_sr` (``tiledsm sr``), :func:`plan_compare`
-(``tiledsm compare``), :func:`plan_ortho` (``tiledsm ortho``) and
-:func:`plan_orient` (``tiledsm orient``). It
+by :func:`plan_recipe` (``tiledsm dsm``, ``tiledsm ortho``, ``tiledsm
+orient`` and ``tiledsm run``: the plan of each pipeline is in the
+registry, :mod:`tiledsm.pipelines`), :func:`plan_sr` (``tiledsm sr``) and
+:func:`plan_compare` (``tiledsm compare``). It
 
 - resolves every path to an absolute one (a relative ``--out`` then means
   the same folder to workers started elsewhere, e.g. on an external
@@ -41,8 +41,9 @@ opened views, tie points and lazy DSM, so nothing is done twice.
 
 The package: :mod:`.core` (the plan, limits, shared checks), :mod:`.memory`
 (worker memory, level sizes), :mod:`.dsm`, :mod:`.recipes` (whole recipes)
-and :mod:`.stages` (``sr``, ``compare``), :mod:`.imagery` (``ortho``,
-``orient``).
+and :mod:`.stages` (``sr``, ``compare``); the plans of ``ortho`` and
+``orient`` are their stage packages' (:mod:`tiledsm.ortho.plan`,
+:mod:`tiledsm.orient.plan`).
 
 Conventions: sizes in cells are ``rows x columns``; memory in bytes (MiB
 and GiB in text are 2**20 and 2**30 bytes); heights are ellipsoidal metres.
@@ -82,10 +83,6 @@ from tiledsm.plan.stages import (
     plan_sr,
     plan_compare,
 )
-from tiledsm.plan.imagery import (
-    plan_ortho,
-    plan_orient,
-)
 
 __all__ = [
     "CLI_NAMES",
@@ -109,8 +106,6 @@ __all__ = [
     "plan_recipe",
     "plan_sr",
     "plan_compare",
-    "plan_ortho",
-    "plan_orient",
     "WORKER_BASELINE_MIB",
     "LOW_COMPLETENESS",
     "MOSTLY_OUTSIDE",
