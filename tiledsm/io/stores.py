@@ -44,7 +44,7 @@ def _as_dataset(obj) -> xr.Dataset:
     if isinstance(obj, xr.DataArray):
         name = obj.name if obj.name is not None else _UNNAMED
         ds = obj.to_dataset(name=name, promote_attrs=False)
-        ds.attrs = {_DA_ATTR: name}
+        ds.attrs = {_DA_ATTR: name, **{k: obj.attrs[k] for k in ("fingerprint",) if k in obj.attrs}}  # the store's
         return ds
     if isinstance(obj, xr.Dataset):
         return obj
@@ -565,14 +565,12 @@ def write_resumable(
     Notes
     -----
     When ``obj.attrs`` holds a ``fingerprint`` (JSON of everything that
-    determines the result, :mod:`tiledsm.provenance`; a DataArray's too), it
-    is stored with the store at creation, and an existing finished or partial store is resumed
+    determines the result, :mod:`tiledsm.provenance`), it is stored with the
+    store at creation, and an existing finished or partial store is resumed
     only if its fingerprint is the same: otherwise
     :class:`~tiledsm.errors.FingerprintMismatchError` names what changed.
     """
     ds = _as_dataset(obj)
-    if isinstance(obj, xr.DataArray) and "fingerprint" in obj.attrs:
-        ds.attrs["fingerprint"] = obj.attrs["fingerprint"]  # the store's, as a Dataset's is
     variables = list(ds.data_vars)
     if not variables:
         raise ValueError(f"{path}: nothing to write (no data variables)")
