@@ -67,3 +67,25 @@ def kill(p: subprocess.Popen) -> None:
 def temporaries(folder: Path) -> list[str]:
     """Names of the atomic writers' temporaries left in ``folder`` (tree)."""
     return sorted(str(q.relative_to(folder)) for q in folder.rglob(".*") if ".tmp-" in q.name or ".old-" in q.name)
+
+
+def refused_while_held(first_cmd: list[str], second_cmd: list[str], out: Path, command: str, log: Path) -> str:
+    """Start ``first_cmd`` (a run into ``out``); once it holds the folder's
+    lock, run ``second_cmd`` into ``out`` too; wait for the first to
+    finish. Checks that the second was refused (exit 2, one error line
+    naming ``out`` and the other run) while the first still ran, that the
+    first then finished (exit 0) and released the lock; returns the line."""
+    first = start(first_cmd, log)
+    try:
+        wait_until(first, lambda: (out / ".tiledsm.lock").exists(), "the lock was taken", log)
+        second = run(second_cmd, timeout=60)
+        first_alive = first.poll() is None
+        first.wait(timeout=300)
+    finally:
+        kill(first)
+    line = error_line(second, command)
+    assert first_alive, f"the first run ended before the second was refused ({line})"
+    assert "another" in line and str(out) in line, line
+    assert first.returncode == 0, log.read_text()[-3000:]
+    assert not (out / ".tiledsm.lock").exists()
+    return line

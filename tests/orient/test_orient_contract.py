@@ -16,7 +16,7 @@ import pytest
 import yaml
 from orient_cases import write_gcp_files
 
-from tests.run_contract import error_line, kill, ok, run, start, temporaries, tiledsm, wait_until
+from tests.run_contract import kill, ok, refused_while_held, run, start, temporaries, tiledsm, wait_until
 
 #: products compared byte for byte (orient.json apart: it holds timings)
 EXACT = ("view_0.tif", "view_0_RPC.TXT", "view_1.tif", "view_1_RPC.TXT", "residuals.csv")
@@ -73,24 +73,15 @@ def test_a_run_writes_its_log_resolved_recipe_and_metrics(uninterrupted, tmp_pat
     assert yaml.safe_load((again / "recipe.resolved.yaml").read_text()) == resolved
 
 
+@pytest.mark.slow
 def test_a_second_run_into_a_held_folder_is_refused(case, uninterrupted, tmp_path):
     out = tmp_path / "o"
-    first = start(orient_cmd(case, out), tmp_path / "first.log")
-    try:
-        wait_until(first, lambda: (out / ".tiledsm.lock").exists(), "the lock was taken", tmp_path / "first.log")
-        second = run(orient_cmd(case, out, "--model", "shift"), timeout=60)
-        first_alive = first.poll() is None
-        first.wait(timeout=300)
-    finally:
-        kill(first)
-    line = error_line(second, "orient")
-    assert first_alive, f"the first run ended before the second was refused ({line})"
-    assert "another" in line and str(out) in line, line
-    assert first.returncode == 0, (tmp_path / "first.log").read_text()[-3000:]
+    refused_while_held(orient_cmd(case, out), orient_cmd(case, out, "--model", "shift"), out, "orient",
+                       tmp_path / "first.log")
     same_products(out, uninterrupted)
-    assert not (out / ".tiledsm.lock").exists()
 
 
+@pytest.mark.slow
 def test_a_killed_run_completes_when_run_again(case, uninterrupted, tmp_path):
     out = tmp_path / "o"
 
@@ -107,3 +98,21 @@ def test_a_killed_run_completes_when_run_again(case, uninterrupted, tmp_path):
     ok(run(orient_cmd(case, out)))  # the dead run's lock is stale and taken over
     same_products(out, uninterrupted)
     assert not (out / ".tiledsm.lock").exists() and not temporaries(out)
+
+
+def test_messages_name_the_option_or_the_recipe_field(case, tmp_path, capsys):
+    """The command's bad value names its option (from the spec's metadata);
+    the same fault in a recipe names the recipe field."""
+    from tiledsm.cli import main
+
+    biased, gcps = case
+    assert main(["orient", *map(str, biased), "--out", str(tmp_path / "o"), "--tile", "32"]) == 2
+    assert "tiledsm orient: error: --tile: Input should be greater than or equal to 64" in capsys.readouterr().err
+    assert main(["orient", *map(str, biased), "--out", str(tmp_path / "o"), "--geoid", str(gcps)]) == 2
+    assert "tiledsm orient: error: --geoid: 'geoid' is the reference DEM's datum: give 'dem' too" in capsys.readouterr().err
+    recipe = tmp_path / "orient.yaml"
+    recipe.write_text(yaml.safe_dump({"pipeline": "orient", "images": [str(biased[0])],
+                                      "orient": {"check_points": str(gcps)}}))
+    assert main(["run", str(recipe), "--out", str(tmp_path / "r")]) == 2
+    assert "images: one image needs orient.gcps" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists() and not (tmp_path / "r").exists()

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import yaml
 
-from tests.run_contract import error_line, kill, ok, run, start, temporaries, tiledsm, wait_until
+from tests.run_contract import kill, ok, refused_while_held, run, start, temporaries, tiledsm, wait_until
 from tiledsm.io import open_product
 
 TOTAL = 64  # chunks of 64 over the 512 x 512 ortho cells
@@ -69,26 +69,17 @@ def test_a_run_writes_its_log_resolved_recipe_and_metrics(uninterrupted, tmp_pat
     assert metrics(again)["timings"]["chunks"]["chunks_computed"] == TOTAL
 
 
+@pytest.mark.slow
 def test_a_second_run_into_a_held_folder_is_refused(ortho_scene, uninterrupted, tmp_path):
     out = tmp_path / "busy"
-    first = start(ortho_cmd(ortho_scene, out), tmp_path / "first.log")
-    try:
-        wait_until(first, lambda: (out / ".tiledsm.lock").exists(), "the lock was taken", tmp_path / "first.log")
-        second = run(ortho_cmd(ortho_scene, out, "--kernel", "nn"), timeout=60)
-        first_alive = first.poll() is None
-        first.wait(timeout=300)
-    finally:
-        kill(first)
-    line = error_line(second, "ortho")
-    assert first_alive, f"the first run ended before the second was refused ({line})"
-    assert "another" in line and str(out) in line, line
-    assert first.returncode == 0, (tmp_path / "first.log").read_text()[-3000:]
+    refused_while_held(ortho_cmd(ortho_scene, out), ortho_cmd(ortho_scene, out, "--kernel", "nn"), out, "ortho",
+                       tmp_path / "first.log")
     np.testing.assert_array_equal(open_product(out / "ortho.zarr").values,
                                   open_product(uninterrupted / "ortho.zarr").values)
     assert metrics(out)["timings"]["chunks"]["chunks_computed"] == TOTAL
-    assert not (out / ".tiledsm.lock").exists()
 
 
+@pytest.mark.slow
 def test_a_killed_run_resumes_its_finished_chunks(ortho_scene, uninterrupted, tmp_path):
     out = tmp_path / "killed"
     partial = out / "ortho.zarr.partial"
@@ -111,3 +102,20 @@ def test_a_killed_run_resumes_its_finished_chunks(ortho_scene, uninterrupted, tm
     assert not partial.exists() and not (out / ".tiledsm.lock").exists() and not temporaries(out)
     resolved = yaml.safe_load((out / "recipe.resolved.yaml").read_text())
     assert {**resolved, "name": "o"} == yaml.safe_load((uninterrupted / "recipe.resolved.yaml").read_text())
+
+
+def test_messages_name_the_option_or_the_recipe_field(ortho_scene, tmp_path, capsys):
+    """The command's bad value names its option (from the spec's metadata);
+    the same fault in a recipe names the recipe field."""
+    from tiledsm.cli import main
+
+    base = ["ortho", str(ortho_scene.views[0]), "--dsm", str(ortho_scene.truth_dsm), "--out", str(tmp_path / "o")]
+    assert main(base + ["--chunk", "8"]) == 2
+    assert "tiledsm ortho: error: --chunk: Input should be greater than or equal to 16" in capsys.readouterr().err
+    recipe = tmp_path / "ortho.yaml"
+    recipe.write_text(yaml.safe_dump({"pipeline": "ortho", "input": {"image": str(ortho_scene.views[0]),
+                                                                     "dsm": str(tmp_path / "nope.tif")}}))
+    assert main(["run", str(recipe), "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    assert "nope.tif: input.dsm: no such file" in err and "--dsm" not in err
+    assert not (tmp_path / "o").exists() and not (tmp_path / "r").exists()

@@ -4,7 +4,9 @@ bias-compensated RPC block adjustment with GCPs and a reference DEM.
 Pure kernels (:mod:`~tiledsm.orient.bias`, :mod:`~tiledsm.orient.adjust`,
 :mod:`~tiledsm.orient.p2l`) work on arrays; :mod:`~tiledsm.orient.tracks`
 tiles the matching with dask; :mod:`~tiledsm.orient.stage` reads the inputs
-and writes the corrected RPCs.
+and writes the corrected RPCs. The stage (``pipeline: orient``, ``tiledsm
+orient``): its recipe (:mod:`~tiledsm.orient.spec`), plan
+(:mod:`~tiledsm.orient.plan`) and runner (:mod:`~tiledsm.orient.run`).
 
 The package's names are loaded from their modules on first use (PEP 562):
 a recipe model needs :class:`~tiledsm.orient.spec.OrientSpec`, not the

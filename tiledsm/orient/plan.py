@@ -12,11 +12,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 from tiledsm.errors import InvalidOptionError
 from tiledsm.orient.spec import OrientRecipe
-from tiledsm.plan.core import RECIPE_NAMES, FieldNames, InputInfo, Plan, existing_file, readable_raster
+from tiledsm.plan.core import RECIPE_NAMES, FieldNames, InputInfo, Plan, existing_file, readable_raster, spelling
 
 __all__ = ["plan_orient", "PreparedOrientation", "ORIENT_PRODUCTS", "orient_products"]
 
@@ -43,17 +43,6 @@ class PreparedOrientation:
     check_points: str | None = None
 
 
-def spelling(names: FieldNames) -> Callable[[str], str]:
-    """How messages name a field of :class:`OrientRecipe`: its command
-    option when the plan was asked with the command's names, else its
-    recipe path."""
-    from tiledsm.recipes import options_of
-
-    options = options_of(OrientRecipe)
-    command = names.chunk.startswith("--")
-    return lambda path: options.get(path, path) if command else path
-
-
 def plan_orient(plan: Plan, recipe: OrientRecipe, cluster=None, *, overwrite: bool = False,
                 names: FieldNames = RECIPE_NAMES) -> Plan:
     """Fill ``plan`` (made by :func:`tiledsm.plan.plan_recipe`) for a
@@ -77,7 +66,7 @@ def plan_orient(plan: Plan, recipe: OrientRecipe, cluster=None, *, overwrite: bo
     from tiledsm.io.cameras import find_camera
     from tiledsm.orient.points import ControlPoints, read_points
 
-    name = spelling(names)
+    name = spelling(OrientRecipe, names)
     spec, images = recipe.orient, recipe.images
     if len(images) < 2 and not spec.gcps:
         raise InvalidOptionError(f"{name('images')}: one image needs {name('orient.gcps')} "

@@ -30,13 +30,14 @@ def run_orient(recipe: OrientRecipe, out: Path, cluster: ClusterConfig | None = 
     for tie points) and the products written
     (:func:`tiledsm.orient.stage.write_orientation`: the earlier ones
     withdrawn first, ``orient.json`` last); ``metrics.json`` (the residuals
-    of ``orient.json``, the datum, the warnings, timings) comes after. An
+    of ``orient.json``, the datum, the warnings, timings) comes after, and
+    is withdrawn (with ``recipe.resolved.yaml``) before anything is written. An
     orientation takes seconds: a rerun, after a kill too, computes it again
     (``overwrite`` changes nothing). :func:`tiledsm.pipelines.run_recipe`
     calls it inside the folder's lock.
     """
     from tiledsm.cluster import compute_context
-    from tiledsm.io import atomic_path
+    from tiledsm.io import atomic_path, withdraw
     from tiledsm.orient.stage import orient_images, write_orientation
 
     out = Path(out)
@@ -46,6 +47,8 @@ def run_orient(recipe: OrientRecipe, out: Path, cluster: ClusterConfig | None = 
         from tiledsm.plan.core import new_plan
 
         plan = plan_orient(new_plan("run", out, cluster), recipe, cluster, overwrite=overwrite)
+    # the exports are rewritten, even from a finished store: nothing may describe them meanwhile
+    withdraw(out, ["metrics.json", "recipe.resolved.yaml"])
     t0 = time.perf_counter()
     prepared, params = plan.product, recipe.orient.params()
     # the tie-point tiles are the only parallel part; GCP-only runs start no cluster

@@ -13,11 +13,12 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Callable
 
 from tiledsm.errors import TiledsmError
 from tiledsm.ortho.spec import OrthoRecipe
-from tiledsm.plan.core import MOSTLY_OUTSIDE, RECIPE_NAMES, FieldNames, InputInfo, Plan, existing_file, readable_raster
+from tiledsm.plan.core import (
+    MOSTLY_OUTSIDE, RECIPE_NAMES, FieldNames, InputInfo, Plan, existing_file, readable_raster, spelling,
+)
 
 __all__ = ["plan_ortho", "ORTHO_STORE", "ORTHO_EXPORTS"]
 
@@ -25,17 +26,6 @@ __all__ = ["plan_ortho", "ORTHO_STORE", "ORTHO_EXPORTS"]
 ORTHO_STORE = "ortho.zarr"
 #: files written from the finished store (the report last)
 ORTHO_EXPORTS = ("ortho.tif", "ortho.png", "ortho.json")
-
-
-def spelling(names: FieldNames) -> Callable[[str], str]:
-    """How messages name a field of :class:`OrthoRecipe`: its command
-    option when the plan was asked with the command's names, else its
-    recipe path."""
-    from tiledsm.recipes import options_of
-
-    options = options_of(OrthoRecipe)
-    command = names.chunk.startswith("--")
-    return lambda path: options.get(path, path) if command else path
 
 
 def plan_ortho(plan: Plan, recipe: OrthoRecipe, cluster=None, *, overwrite: bool = False,
@@ -58,7 +48,7 @@ def plan_ortho(plan: Plan, recipe: OrthoRecipe, cluster=None, *, overwrite: bool
     """
     from tiledsm.ortho.stage import ortho_files, ortho_fingerprint
 
-    name = spelling(names)
+    name = spelling(OrthoRecipe, names)
     inp, grid, spec = recipe.input, recipe.grid, recipe.ortho
     img = readable_raster(existing_file(inp.image, name("input.image")), name("input.image"))
     dsm_path = existing_file(inp.dsm, name("input.dsm"))

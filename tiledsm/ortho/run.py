@@ -25,11 +25,11 @@ def run_ortho(recipe: OrthoRecipe, out: Path, cluster: ClusterConfig | None = No
     finished are reused, ``overwrite`` discards them), then ``ortho.tif``,
     ``ortho.png`` and ``ortho.json`` (:func:`tiledsm.ortho.stage.write_ortho_products`);
     ``metrics.json`` (that report, ``pipeline``, the plan's warnings, the
-    chunks reused) is written last. :func:`tiledsm.pipelines.run_recipe`
-    calls it inside the folder's lock, after withdrawing a stale
-    ``metrics.json``.
+    chunks reused) is written last, and withdrawn (with
+    ``recipe.resolved.yaml``) before anything is written.
+    :func:`tiledsm.pipelines.run_recipe` calls it inside the folder's lock.
     """
-    from tiledsm.io import atomic_path
+    from tiledsm.io import atomic_path, withdraw
     from tiledsm.ortho.stage import write_ortho_products
 
     out = Path(out)
@@ -39,6 +39,8 @@ def run_ortho(recipe: OrthoRecipe, out: Path, cluster: ClusterConfig | None = No
         from tiledsm.plan.core import new_plan
 
         plan = plan_ortho(new_plan("run", out, cluster), recipe, cluster, overwrite=overwrite)
+    # the exports are rewritten, even from a finished store: nothing may describe them meanwhile
+    withdraw(out, ["metrics.json", "recipe.resolved.yaml"])
     t0 = time.perf_counter()
     report = write_ortho_products(plan.product, out, cluster=cluster, warnings=plan.warnings, resume=True,
                                   overwrite=overwrite)

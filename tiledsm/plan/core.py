@@ -206,6 +206,18 @@ class Plan:
 
 
 # --------------------------------------------------------------------------- generic checks
+def spelling(model, names: FieldNames):
+    """``name(path)``: how a message names the field ``path`` of the recipe
+    model ``model``: the command option its metadata names
+    (:func:`tiledsm.recipes.options_of`) when the plan was asked with a
+    command's names (``--chunk``...), else the recipe path itself."""
+    from tiledsm.recipes import options_of
+
+    options = options_of(model)
+    command = names.chunk.startswith("--")
+    return lambda path: options.get(path, path) if command else path
+
+
 def existing_file(path: str | os.PathLike, name: str) -> str:
     """``path`` made absolute; :class:`~tiledsm.errors.InputFileError`
     naming the option/field ``name`` when it is not a file (zarr stores,
