@@ -41,7 +41,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_cluster_arguments(p)
     add_overwrite_argument(p)
     add_plan_arguments(p, large=False)
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, report=_print_table, allow_large=False)
 
 
 def orient_recipe(args: argparse.Namespace):
@@ -63,10 +63,14 @@ def orient_recipe(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    from tiledsm.cli.run import cluster_config, plan_and_run
-    from tiledsm.plan import CLI_NAMES
+    import dataclasses
 
-    return plan_and_run(orient_recipe(args), args, cluster_config(args), CLI_NAMES, report=_print_table)
+    from tiledsm.cli.run import cluster_config, plan_and_run
+    from tiledsm.plan import RECIPE_NAMES
+
+    # the stage's plan names its fields by their options itself (tiledsm.plan.core.spelling); these are the cluster's
+    names = dataclasses.replace(RECIPE_NAMES, workers="--workers", scheduler="--scheduler")
+    return plan_and_run(orient_recipe(args), args, cluster_config(args), names)
 
 
 def _fmt(v) -> str:

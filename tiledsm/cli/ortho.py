@@ -35,7 +35,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_cluster_arguments(p)
     add_overwrite_argument(p)
     add_plan_arguments(p, large=False)
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, report=print_report, allow_large=False)
 
 
 def ortho_recipe(args: argparse.Namespace):
@@ -58,11 +58,17 @@ def ortho_recipe(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    import dataclasses
+
     from tiledsm.cli.run import cluster_config, plan_and_run
-    from tiledsm.plan import CLI_NAMES
+    from tiledsm.plan import RECIPE_NAMES
 
-    def report(metrics: dict) -> None:
-        print(f"{Path(args.out).resolve()}/ortho.tif: {metrics['shape'][0]} x {metrics['shape'][1]} cells of "
-              f"{metrics['resolution_m']:g} m, {metrics['valid_share']:.0%} valid ({metrics['attrs']['kernel']})")
+    # the stage's plan names its fields by their options itself (tiledsm.plan.core.spelling); these are the cluster's
+    names = dataclasses.replace(RECIPE_NAMES, workers="--workers", scheduler="--scheduler")
+    return plan_and_run(ortho_recipe(args), args, cluster_config(args), names)
 
-    return plan_and_run(ortho_recipe(args), args, cluster_config(args), CLI_NAMES, report=report)
+
+def print_report(metrics: dict) -> None:
+    """The run's summary: the ortho's size, cell and valid share."""
+    print(f"{metrics['out']}/ortho.tif: {metrics['shape'][0]} x {metrics['shape'][1]} cells of "
+          f"{metrics['resolution_m']:g} m, {metrics['valid_share']:.0%} valid ({metrics['attrs']['kernel']})")

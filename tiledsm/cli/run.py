@@ -108,23 +108,22 @@ def print_warnings(command: str, messages) -> None:
         print(f"tiledsm {command}: warning: {m}", file=sys.stderr)
 
 
-def plan_and_run(recipe, args: argparse.Namespace, cluster, names, report=None) -> int:
+def plan_and_run(recipe, args: argparse.Namespace, cluster, names) -> int:
     """Plan a recipe into ``args.out``; print the plan (``--dry-run``) or
-    run it, printing its warnings on stderr and its summary (``report(metrics)``
-    when given, else :func:`print_summary`)."""
+    run it, printing its warnings on stderr and its summary."""
     from tiledsm.pipelines import run_recipe
     from tiledsm.plan import Limits, plan_recipe
 
     plan = plan_recipe(
-        recipe, args.out, cluster, overwrite=args.overwrite,
-        limits=Limits(allow_large=getattr(args, "allow_large", False)), names=names, command=args.command,
+        recipe, args.out, cluster, overwrite=args.overwrite, limits=Limits(allow_large=args.allow_large),
+        names=names, command=args.command,
     )
     print_warnings(args.command, plan.warnings)
     if args.dry_run:
         print(plan.summary())
         return 0
     metrics = run_recipe(recipe, args.out, cluster, overwrite=args.overwrite, plan=plan)
-    (report or print_summary)(metrics)
+    (getattr(args, "report", None) or print_summary)(metrics)  # a command's own summary: a parser default
     print_warnings(args.command, [w for w in metrics.get("warnings", []) if w not in plan.warnings])
     return 0
 

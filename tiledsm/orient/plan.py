@@ -66,7 +66,7 @@ def plan_orient(plan: Plan, recipe: OrientRecipe, cluster=None, *, overwrite: bo
     from tiledsm.io.cameras import find_camera
     from tiledsm.orient.points import ControlPoints, read_points
 
-    name = spelling(OrientRecipe, names)
+    name = spelling(OrientRecipe, plan)
     spec, images = recipe.orient, recipe.images
     if len(images) < 2 and not spec.gcps:
         raise InvalidOptionError(f"{name('images')}: one image needs {name('orient.gcps')} "

@@ -48,7 +48,7 @@ def plan_ortho(plan: Plan, recipe: OrthoRecipe, cluster=None, *, overwrite: bool
     """
     from tiledsm.ortho.stage import ortho_files, ortho_fingerprint
 
-    name = spelling(OrthoRecipe, names)
+    name = spelling(OrthoRecipe, plan)
     inp, grid, spec = recipe.input, recipe.grid, recipe.ortho
     img = readable_raster(existing_file(inp.image, name("input.image")), name("input.image"))
     dsm_path = existing_file(inp.dsm, name("input.dsm"))

@@ -48,7 +48,7 @@ def run_ortho(recipe: OrthoRecipe, out: Path, cluster: ClusterConfig | None = No
     if chunks["chunks_reused"]:
         print(f"{out / 'ortho.zarr'}: reused {chunks['chunks_reused']} of {chunks['chunks_total']} chunks "
               "from an earlier run")
-    metrics = {"pipeline": "ortho", **report}
+    metrics = {"pipeline": "ortho", "out": str(out), **report}
     metrics["timings"]["total_s"] = time.perf_counter() - t0
     with atomic_path(out / "metrics.json") as tmp:
         Path(tmp).write_text(json.dumps(metrics, indent=2, default=str))

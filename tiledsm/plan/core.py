@@ -206,16 +206,15 @@ class Plan:
 
 
 # --------------------------------------------------------------------------- generic checks
-def spelling(model, names: FieldNames):
-    """``name(path)``: how a message names the field ``path`` of the recipe
-    model ``model``: the command option its metadata names
-    (:func:`tiledsm.recipes.options_of`) when the plan was asked with a
-    command's names (``--chunk``...), else the recipe path itself."""
+def spelling(model, plan: Plan):
+    """``name(path)``: how a message of ``plan`` names the field ``path`` of
+    the recipe model ``model``: the option its metadata names
+    (:func:`tiledsm.recipes.options_of`) when a stage's own command made
+    the plan (``tiledsm ortho``...), the recipe path under ``tiledsm run``."""
     from tiledsm.recipes import options_of
 
-    options = options_of(model)
-    command = names.chunk.startswith("--")
-    return lambda path: options.get(path, path) if command else path
+    options = options_of(model) if plan.command != "run" else {}
+    return lambda path: options.get(path, path)
 
 
 def existing_file(path: str | os.PathLike, name: str) -> str:
