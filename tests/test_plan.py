@@ -575,7 +575,7 @@ def test_every_option_a_message_names_exists_in_the_command_help():
 
 @pytest.mark.parametrize("command, model", [
     ("dsm", "tiledsm.workflows.dsm:DSMRecipe"), ("displace", "tiledsm.workflows.displace:DisplaceRecipe"),
-    ("ortho", "tiledsm.ortho.spec:OrthoRecipe"), ("orient", "tiledsm.orient.spec:OrientRecipe")])
+    ("ortho", "tiledsm.ortho.recipe:OrthoRecipe"), ("orient", "tiledsm.orient.recipe:OrientRecipe")])
 def test_every_spec_option_exists_in_its_command(command, model):
     """The options a command's spec names in its fields' metadata (what its
     errors print, :func:`tiledsm.recipes.options_of`) are the command's."""

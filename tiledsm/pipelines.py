@@ -2,7 +2,7 @@
 
 Each pipeline is a workflow module (:mod:`tiledsm.workflows`) holding its
 recipe model and its runner, or a stage package holding them (``ortho``,
-``orient``: ``spec.py``, ``plan.py``, ``run.py``); :data:`PIPELINES` lists them, explicitly, and
+``orient``: its ``recipe``, ``plan`` and ``run`` modules); :data:`PIPELINES` lists them, explicitly, and
 is the only list: :func:`load_recipe` validates a recipe against the
 model its ``pipeline`` names, :func:`run_recipe` plans it, locks the run
 folder and calls the runner. A runner takes a validated recipe and a run
@@ -30,10 +30,10 @@ from tiledsm.errors import RecipeError
 from tiledsm.plan.dsm import plan_dsm
 from tiledsm.orient.plan import plan_orient
 from tiledsm.orient.run import run_orient
-from tiledsm.orient.spec import OrientRecipe
+from tiledsm.orient.recipe import OrientRecipe
 from tiledsm.ortho.plan import plan_ortho
 from tiledsm.ortho.run import run_ortho
-from tiledsm.ortho.spec import OrthoRecipe
+from tiledsm.ortho.recipe import OrthoRecipe
 from tiledsm.recipes import dump_resolved, format_errors, read_recipe
 from tiledsm.workflows.common import setup_log, withdraw_products
 from tiledsm.workflows.deformation import DeformationRecipe, run_deformation

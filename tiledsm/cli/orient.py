@@ -41,7 +41,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_cluster_arguments(p)
     add_overwrite_argument(p)
     add_plan_arguments(p, large=False)
-    p.set_defaults(func=run, report=_print_table, allow_large=False)
+    p.set_defaults(func=run)
 
 
 def orient_recipe(args: argparse.Namespace):
@@ -49,7 +49,7 @@ def orient_recipe(args: argparse.Namespace):
     absolute; a bad value is an :class:`~tiledsm.errors.InvalidOptionError`
     naming the option."""
     from tiledsm.cli.run import absolute_path, recipe_of_options
-    from tiledsm.orient.spec import OrientRecipe
+    from tiledsm.orient.recipe import OrientRecipe
 
     return recipe_of_options(OrientRecipe, {
         "pipeline": "orient",
@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
 
     # the stage's plan names its fields by their options itself (tiledsm.plan.core.spelling); these are the cluster's
     names = dataclasses.replace(RECIPE_NAMES, workers="--workers", scheduler="--scheduler")
-    return plan_and_run(orient_recipe(args), args, cluster_config(args), names)
+    return plan_and_run(orient_recipe(args), args, cluster_config(args), names, summary=_print_table)
 
 
 def _fmt(v) -> str:

@@ -35,7 +35,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_cluster_arguments(p)
     add_overwrite_argument(p)
     add_plan_arguments(p, large=False)
-    p.set_defaults(func=run, report=print_report, allow_large=False)
+    p.set_defaults(func=run)
 
 
 def ortho_recipe(args: argparse.Namespace):
@@ -43,7 +43,7 @@ def ortho_recipe(args: argparse.Namespace):
     absolute; a bad value is an :class:`~tiledsm.errors.InvalidOptionError`
     naming the option."""
     from tiledsm.cli.run import absolute_path, recipe_of_options
-    from tiledsm.ortho.spec import OrthoRecipe
+    from tiledsm.ortho.recipe import OrthoRecipe
 
     grid = dict(resolution=args.resolution, bounds=args.bounds, crs=args.crs, chunk=args.chunk)
     return recipe_of_options(OrthoRecipe, {
@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
 
     # the stage's plan names its fields by their options itself (tiledsm.plan.core.spelling); these are the cluster's
     names = dataclasses.replace(RECIPE_NAMES, workers="--workers", scheduler="--scheduler")
-    return plan_and_run(ortho_recipe(args), args, cluster_config(args), names)
+    return plan_and_run(ortho_recipe(args), args, cluster_config(args), names, summary=print_report)
 
 
 def print_report(metrics: dict) -> None:

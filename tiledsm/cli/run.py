@@ -108,14 +108,15 @@ def print_warnings(command: str, messages) -> None:
         print(f"tiledsm {command}: warning: {m}", file=sys.stderr)
 
 
-def plan_and_run(recipe, args: argparse.Namespace, cluster, names) -> int:
+def plan_and_run(recipe, args: argparse.Namespace, cluster, names, summary=None) -> int:
     """Plan a recipe into ``args.out``; print the plan (``--dry-run``) or
-    run it, printing its warnings on stderr and its summary."""
+    run it, printing its warnings on stderr and its summary
+    (``summary(metrics)``; default :func:`print_summary`)."""
     from tiledsm.pipelines import run_recipe
     from tiledsm.plan import Limits, plan_recipe
 
     plan = plan_recipe(
-        recipe, args.out, cluster, overwrite=args.overwrite, limits=Limits(allow_large=args.allow_large),
+        recipe, args.out, cluster, overwrite=args.overwrite, limits=Limits(allow_large=getattr(args, "allow_large", False)),
         names=names, command=args.command,
     )
     print_warnings(args.command, plan.warnings)
@@ -123,7 +124,7 @@ def plan_and_run(recipe, args: argparse.Namespace, cluster, names) -> int:
         print(plan.summary())
         return 0
     metrics = run_recipe(recipe, args.out, cluster, overwrite=args.overwrite, plan=plan)
-    (getattr(args, "report", None) or print_summary)(metrics)  # a command's own summary: a parser default
+    (summary or print_summary)(metrics)
     print_warnings(args.command, [w for w in metrics.get("warnings", []) if w not in plan.warnings])
     return 0
 

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from tiledsm.errors import InvalidOptionError
-from tiledsm.orient.spec import OrientRecipe
+from tiledsm.orient.recipe import OrientRecipe
 from tiledsm.plan.core import RECIPE_NAMES, FieldNames, InputInfo, Plan, existing_file, readable_raster, spelling
 
 __all__ = ["plan_orient", "PreparedOrientation", "ORIENT_PRODUCTS", "orient_products"]

@@ -9,7 +9,7 @@ from contextlib import nullcontext
 from pathlib import Path
 
 from tiledsm.cluster import ClusterConfig
-from tiledsm.orient.spec import OrientRecipe
+from tiledsm.orient.recipe import OrientRecipe
 
 __all__ = ["run_orient"]
 

@@ -1,5 +1,6 @@
-"""The recipe section ``orient:``, the step the pipelines run with it, and
-``pipeline: orient`` (:class:`OrientRecipe`, what ``tiledsm orient`` runs).
+"""The recipe section ``orient:`` (the parameters of ``tiledsm orient`` and
+of :class:`tiledsm.orient.recipe.OrientRecipe` too) and the step the
+pipelines run with it.
 
 A ``dsm`` (or ``deformation``) recipe with an ``orient:`` section orients
 its images first (:func:`tiledsm.orient.stage.orient_images`: tie points,
@@ -29,9 +30,9 @@ from typing import Callable, Literal, Optional, Sequence
 import numpy as np
 from pydantic import Field, model_validator
 
-from tiledsm.recipes import ClusterSpec, StrictModel, option
+from tiledsm.recipes import StrictModel, option
 
-__all__ = ["OrientSpec", "OrientRecipe", "orient_for_recipe", "polygon_exclusion"]
+__all__ = ["OrientSpec", "orient_for_recipe", "polygon_exclusion"]
 
 
 class OrientSpec(StrictModel):
@@ -75,20 +76,6 @@ class OrientSpec(StrictModel):
 
         return OrientParams(model=self.model, tie_points=self.tie_points, datum=self.datum,
                             tracks=TrackParams(tile=self.tile, extractor=self.extractor))
-
-
-class OrientRecipe(StrictModel):
-    """``pipeline: orient`` — images to bias-corrected RPCs: per image
-    ``<stem>_RPC.TXT`` and ``<stem>.tif``, with ``orient.json``,
-    ``residuals.csv``, ``residuals.png`` and ``metrics.json``."""
-
-    pipeline: Literal["orient"]
-    name: str = "orient"
-    images: list[str] = Field(..., min_length=1, description="images with RPCs (tags or sidecars); the first is the "
-                              "tie-point reference", json_schema_extra=option("IMAGES"))
-    # the section's own check (a geoid needs a DEM) is --geoid's
-    orient: OrientSpec = Field(OrientSpec(), json_schema_extra=option("--geoid"))
-    cluster: ClusterSpec = ClusterSpec()
 
 
 def polygon_exclusion(path: str | Path) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:

@@ -5,7 +5,7 @@ Public API: :data:`KERNELS`, :func:`get_kernel`, :func:`sample` (kernels);
 :func:`orthorectify` and :class:`OrthoParams` (:mod:`tiledsm.ortho.rectify`).
 
 The stage (``pipeline: ortho``, ``tiledsm ortho``): its recipe
-(:mod:`tiledsm.ortho.spec`), its plan (:mod:`tiledsm.ortho.plan`), its
+(:mod:`tiledsm.ortho.recipe`), its plan (:mod:`tiledsm.ortho.plan`), its
 runner (:mod:`tiledsm.ortho.run`) and its products
 (:mod:`tiledsm.ortho.stage`).
 """

@@ -15,7 +15,7 @@ import json
 from pathlib import Path
 
 from tiledsm.errors import TiledsmError
-from tiledsm.ortho.spec import OrthoRecipe
+from tiledsm.ortho.recipe import OrthoRecipe
 from tiledsm.plan.core import (
     MOSTLY_OUTSIDE, RECIPE_NAMES, FieldNames, InputInfo, Plan, existing_file, readable_raster, spelling,
 )

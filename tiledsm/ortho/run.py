@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from tiledsm.cluster import ClusterConfig
-from tiledsm.ortho.spec import OrthoRecipe
+from tiledsm.ortho.recipe import OrthoRecipe
 
 __all__ = ["run_ortho"]
 
