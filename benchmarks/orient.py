@@ -53,7 +53,7 @@ from tiledsm.cli import main  # noqa: E402
 from tiledsm.io.cameras import find_camera  # noqa: E402
 from tiledsm.orient import OrientParams, ReferenceDEM, TrackParams, orient_images, write_orientation  # noqa: E402
 from tiledsm.orient.p2l import p2l_filter, ransac_filter  # noqa: E402
-from tiledsm.orient.simulate import (  # noqa: E402
+from simulate import (  # noqa: E402
     biased_copies, corner_points, ground_points, project_all, write_points_csv,
 )
 
@@ -156,7 +156,7 @@ def synthetic(views: int) -> dict:
 
 
 def p2l_case() -> dict:
-    from tiledsm.orient.simulate import inject_bias, pushbroom_rpcs
+    from simulate import inject_bias, pushbroom_rpcs
 
     size, hr = 1024, (200.0, 400.0)
     true = pushbroom_rpcs(2, size, h_range=hr)

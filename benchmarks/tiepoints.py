@@ -152,7 +152,7 @@ def run_scene(views: int, seed: int, root: Path) -> tuple[dict, dict]:
     from orient_cases import BIASES
 
     from tiledsm.io.cameras import find_camera
-    from tiledsm.orient.simulate import biased_copies
+    from simulate import biased_copies
     from tiledsm.orient.tracks import TrackParams, coarse_guide, tie_point_tracks
     from tiledsm.synth import make_scene
 
@@ -224,7 +224,7 @@ def run_orientation(views: int, root: Path) -> dict:
 
     from tiledsm.io.cameras import find_camera
     from tiledsm.orient import OrientParams, TrackParams, orient_images
-    from tiledsm.orient.simulate import biased_copies, corner_points, ground_points, write_points_csv
+    from simulate import biased_copies, corner_points, ground_points, write_points_csv
     from tiledsm.synth import make_scene
 
     info = make_scene(root / "scene", size=512, views=views, seed=4, chunk=256, workers=1)

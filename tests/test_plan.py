@@ -505,8 +505,8 @@ def test_relative_out_on_an_external_cluster(scene, tmp_path):
 # ------------------------------------------------------------------ 6. messages
 #: which commands can show the messages raised in a module (or one of its functions)
 EMITTERS = {
-    "tiledsm/provenance.py": ("dsm", "run"),
-    "tiledsm/io/stores.py": ("dsm", "run"),
+    "tiledsm/provenance.py": ("dsm", "run", "ortho"),
+    "tiledsm/io/stores.py": ("dsm", "run", "ortho"),
     "tiledsm/cli/synth.py": ("synth",),
     "tiledsm/sr/train.py": ("train-sr",),
     # `python -m tiledsm.sr.ncnn`, a maintainer's converter: no tiledsm command shows its options
@@ -535,8 +535,8 @@ EMITTERS = {
     "tiledsm/sr/recipe.py": ("sr", "run"),
     "tiledsm/compare/recipe.py": ("compare", "run"),
     "tiledsm/plan/core.py:check_earlier_run": ("dsm", "run", "sr", "compare"),
-    "tiledsm/plan/imagery.py:plan_ortho": ("ortho",),
-    "tiledsm/plan/imagery.py:plan_orient": ("orient",),
+    "tiledsm/ortho/plan.py": ("ortho", "run"),
+    "tiledsm/orient/plan.py": ("orient", "run"),
     "tiledsm/io/lock.py:_refuse_or_take_over": ("dsm", "run", "compare", "ortho", "orient"),
     "tiledsm/plan/core.py:check_workers": ("dsm", "run", "compare", "sr"),
     "tiledsm/plan/core.py:FieldNames": ("dsm",),
@@ -598,7 +598,8 @@ def test_every_option_a_message_names_exists_in_the_command_help():
 
 @pytest.mark.parametrize("command, model", [
     ("dsm", "tiledsm.workflows.dsm:DSMRecipe"), ("displace", "tiledsm.workflows.displace:DisplaceRecipe"),
-    ("sr", "tiledsm.sr.recipe:SRRecipe"), ("compare", "tiledsm.compare.recipe:CompareRecipe")])
+    ("sr", "tiledsm.sr.recipe:SRRecipe"), ("compare", "tiledsm.compare.recipe:CompareRecipe"),
+    ("ortho", "tiledsm.ortho.recipe:OrthoRecipe"), ("orient", "tiledsm.orient.recipe:OrientRecipe")])
 def test_every_spec_option_exists_in_its_command(command, model):
     """The options a command's spec names in its fields' metadata (what its
     errors print, :func:`tiledsm.recipes.options_of`) are the command's."""

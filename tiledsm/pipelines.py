@@ -1,7 +1,7 @@
 """The pipelines: one registry of what ``pipeline:`` may name in a recipe.
 
 Each pipeline is a workflow module (:mod:`tiledsm.workflows`) or a stage
-package (``tiledsm.sr``, ``tiledsm.compare``: its ``recipe``, ``plan`` and
+package (``tiledsm.sr``, ``tiledsm.compare``, ``tiledsm.ortho``, ``tiledsm.orient``: its ``recipe``, ``plan`` and
 ``run`` modules) holding its recipe model and its runner; :data:`PIPELINES` lists them, explicitly, and
 is the only list: :func:`load_recipe` validates a recipe against the
 model its ``pipeline`` names, :func:`run_recipe` plans it, locks the run
@@ -31,6 +31,12 @@ from tiledsm.compare.recipe import CompareRecipe
 from tiledsm.compare.run import run_compare
 from tiledsm.errors import RecipeError
 from tiledsm.plan.dsm import plan_dsm
+from tiledsm.orient.plan import plan_orient
+from tiledsm.orient.run import run_orient
+from tiledsm.orient.recipe import OrientRecipe
+from tiledsm.ortho.plan import plan_ortho
+from tiledsm.ortho.run import run_ortho
+from tiledsm.ortho.recipe import OrthoRecipe
 from tiledsm.recipes import dump_resolved, format_errors, read_recipe
 from tiledsm.sr.plan import plan_sr
 from tiledsm.sr.recipe import SRRecipe
@@ -74,6 +80,8 @@ PIPELINES: dict[str, Pipeline] = {
     "displace": Pipeline(DisplaceRecipe, run_displace),
     "sr": Pipeline(SRRecipe, run_sr, plan=plan_sr),
     "compare": Pipeline(CompareRecipe, run_compare, plan=plan_compare),
+    "ortho": Pipeline(OrthoRecipe, run_ortho, plan=plan_ortho),
+    "orient": Pipeline(OrientRecipe, run_orient, plan=plan_orient),
 }
 
 

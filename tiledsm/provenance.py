@@ -416,7 +416,7 @@ def check_resume(stored: Mapping[str, Any] | None, current: Mapping[str, Any], w
     if len(diffs) > _MAX_LISTED:
         listed += f"; and {len(diffs) - _MAX_LISTED} more"
     msg = (
-        f"{what}: the DSM stored here (finished or partial) was computed with other inputs or "
+        f"{what}: the result stored here (finished or partial) was computed with other inputs or "
         f"parameters ({listed}); rerun with --overwrite to recompute, or use another --out"
     )
     raise FingerprintMismatchError(" ".join(msg.splitlines()))

@@ -29,11 +29,13 @@ __all__ = [
 ]
 
 
-def option(name: str) -> dict[str, str]:
+def option(name: str | None) -> dict[str, str | None]:
     """A field's command-line spelling, for ``Field(json_schema_extra=...)``:
     the spec is the one place that says which option sets a field, and
     errors found validating a command's options name that option
-    (:func:`options_of`, :func:`tiledsm.cli.run.recipe_of_options`)."""
+    (:func:`options_of`, :func:`tiledsm.cli.run.recipe_of_options`).
+    ``None``: a section no option of the recipe's command sets (its
+    model's options are another command's: ``orient:`` of a DSM recipe)."""
     return {"option": name}
 
 
@@ -48,6 +50,8 @@ def options_of(model: type[BaseModel], prefix: str = "") -> dict[str, str]:
     for name, info in model.model_fields.items():
         path = f"{prefix}{name}"
         extra = info.json_schema_extra if isinstance(info.json_schema_extra, dict) else {}
+        if "option" in extra and extra["option"] is None:
+            continue
         if "option" in extra:
             found[path] = extra["option"]
         for arg in (info.annotation, *typing.get_args(info.annotation)):

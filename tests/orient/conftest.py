@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from tiledsm.orient.simulate import inject_bias, pushbroom_rpcs
+from simulate import inject_bias, pushbroom_rpcs
 
 from orient_cases import BIASES, H_RANGE, SIZE  # noqa: E402
 
@@ -23,7 +23,7 @@ def scene2(tmp_path_factory):
     """A rendered 512-px 2-view scene with 1 px shifts injected into
     biased copies, and the true cameras."""
     from tiledsm.io.cameras import find_camera
-    from tiledsm.orient.simulate import biased_copies
+    from simulate import biased_copies
     from tiledsm.synth import make_scene
 
     root = tmp_path_factory.mktemp("orient_scene")

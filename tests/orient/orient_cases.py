@@ -22,7 +22,7 @@ def relative_error(rpcs, true, lon, lat, h) -> float:
     ground points intersected with ``rpcs``: 0 when the cameras agree with
     each other (whatever their common absolute error)."""
     from tiledsm.orient.adjust import intersect
-    from tiledsm.orient.simulate import project_all
+    from simulate import project_all
 
     p = project_all(true, lon, lat, h)
     v, n = p.shape[:2]
@@ -36,7 +36,7 @@ def write_gcp_files(true, names, folder):
     """``gcps.csv`` (4 corner points, 0.05 px noise) and ``checks.csv`` (20
     random points) of a 512-px scene seen by the ``true`` cameras, in
     ``folder``; returns both paths."""
-    from tiledsm.orient.simulate import corner_points, ground_points, write_points_csv
+    from simulate import corner_points, ground_points, write_points_csv
 
     gl, ga, gh = corner_points(true[0], (512, 512), (300, 400), seed=1)
     write_points_csv(folder / "gcps.csv", names, true, gl, ga, gh, noise_px=0.05, shape=(512, 512))

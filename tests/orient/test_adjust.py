@@ -11,7 +11,7 @@ from orient_cases import BIASES, H_RANGE, SIZE, relative_error
 from tiledsm.geometry.fit import with_affine
 from tiledsm.orient.adjust import AdjustParams, adjust_block, intersect
 from tiledsm.orient.bias import get_model
-from tiledsm.orient.simulate import corner_points, ground_points, project_all, synthetic_block
+from simulate import corner_points, ground_points, project_all, synthetic_block
 
 AFFINE = get_model("affine")
 

@@ -60,7 +60,7 @@ def test_orient_without_gcps_keeps_the_datum_of_the_agreeing_views(tmp_path):
     (before this rule, least squares of the bias terms: -19.57 / 0.791 m,
     the bias spread over all views)."""
     from tiledsm.io.cameras import find_camera
-    from tiledsm.orient.simulate import biased_copies
+    from simulate import biased_copies
     from tiledsm.synth import make_scene
 
     info = make_scene(tmp_path / "scene", size=512, views=3, bh=0.15, seed=4, workers=1)

@@ -15,7 +15,7 @@ from orient_cases import write_gcp_files
 from tiledsm.cli import main
 from tiledsm.geometry import RPC
 from tiledsm.io.cameras import find_camera
-from tiledsm.orient.simulate import ground_points
+from simulate import ground_points
 
 
 @pytest.fixture(scope="module")
@@ -154,7 +154,7 @@ def test_interrupted_rerun_leaves_no_report_of_the_earlier_run(scene2, points, o
     assert rc == 130 and calls["n"] == 2
     # no report, and no RPC of the earlier run left to be taken for this one's: only the first image's new ones
     left = sorted(p.name for p in out.iterdir())
-    assert left == ["view_0.tif", "view_0_RPC.TXT"], left
+    assert left == ["run.log", "view_0.tif", "view_0_RPC.TXT"], left
     assert not (out / "orient.json").exists()
 
 

@@ -7,7 +7,7 @@ import numpy as np
 from orient_cases import H_RANGE, SIZE
 
 from tiledsm.orient.p2l import p2l_distances, p2l_filter, ransac_filter
-from tiledsm.orient.simulate import ground_points, project_all
+from simulate import ground_points, project_all
 
 
 def _matches(true, n=1000, seed=0):

@@ -17,7 +17,7 @@ from pyproj import Transformer
 
 from tiledsm.io.cameras import find_camera
 from tiledsm.orient.adjust import intersect
-from tiledsm.orient.simulate import project_all
+from simulate import project_all
 from tiledsm.orient.spec import OrientSpec, orient_for_recipe, polygon_exclusion
 
 
@@ -136,7 +136,7 @@ def test_deformation_joint_orientation(tmp_path):
     corrected views with a residual << the injected 2-3 px."""
     from orient_cases import BIASES
 
-    from tiledsm.orient.simulate import biased_copies
+    from simulate import biased_copies
     from tiledsm.synth import make_scene
     from tiledsm.workflows.deformation import DeformationOrientSpec, _orient_epochs
     from tiledsm.workflows.fault import event_exclusion_polygons, write_geojson

@@ -112,14 +112,23 @@ def test_dsm_mostly_outside_the_image_warns(ortho_scene, tmp_path, capsys):
     assert 0.08 <= share <= 0.20  # 1/9 of the area, sampled on a 17 x 17 lattice
 
 
-def test_interrupted_rerun_leaves_no_report_of_the_earlier_run(ortho_scene, tmp_path, monkeypatch):
+def test_interrupted_rerun_leaves_no_report_of_the_earlier_run(ortho_scene, tmp_path, monkeypatch, capsys):
+    """Other parameters into a finished folder are refused (exit 2, the
+    products left alone) until --overwrite; an --overwrite run interrupted
+    midway leaves no report, export or metrics of either run, and the same
+    command without --overwrite then resumes its chunks."""
     import tiledsm.ortho.rectify as rectify
 
     out = tmp_path / "o"
     base = ["ortho", str(ortho_scene.views[0]), "--dsm", str(ortho_scene.truth_dsm), "--out", str(out),
             "--chunk", "64", "--scheduler", "synchronous", "--no-progress"]
     assert main(base + ["--kernel", "bl"]) == 0
-    first = open_product(out / "ortho.zarr").values
+    report = (out / "ortho.json").read_bytes()
+    capsys.readouterr()
+    assert main(base + ["--kernel", "cr"]) == 2
+    err = capsys.readouterr().err
+    assert "ortho.zarr: the result stored here" in err and "params.kernel: BL -> CR" in err and "--overwrite" in err
+    assert (out / "ortho.json").read_bytes() == report
     calls = {"n": 0}
     block = rectify._ortho_block
 
@@ -130,13 +139,16 @@ def test_interrupted_rerun_leaves_no_report_of_the_earlier_run(ortho_scene, tmp_
         return block(*a, block_id=block_id, **kw)
 
     monkeypatch.setattr(rectify, "_ortho_block", dies_midway)
-    assert main(base + ["--kernel", "cr"]) == 130  # what Ctrl-C gives
+    assert main(base + ["--kernel", "cr", "--overwrite"]) == 130  # what Ctrl-C gives
     assert calls["n"] == 5
-    # the earlier store is intact; nothing describes it as the new run, nor as the old one
-    assert open_product(out / "ortho.zarr").attrs["kernel"] == "BL"
-    np.testing.assert_array_equal(open_product(out / "ortho.zarr").values, first)
-    assert not any((out / n).exists() for n in ("ortho.json", "ortho.tif", "ortho.png"))
-    assert not (out / ".tiledsm.lock").exists()
+    # nothing describes the earlier store, nor the new one
+    assert not any((out / n).exists() for n in ("ortho.json", "ortho.tif", "ortho.png", "ortho.zarr", "metrics.json",
+                                                "recipe.resolved.yaml", ".tiledsm.lock"))
+    assert (out / "ortho.zarr.partial").is_dir()
     monkeypatch.undo()
+    capsys.readouterr()
     assert main(base + ["--kernel", "cr"]) == 0
+    chunks = json.loads((out / "metrics.json").read_text())["timings"]["chunks"]
+    assert chunks["chunks_total"] == 16 and 1 <= chunks["chunks_reused"] <= 4
+    assert f"reused {chunks['chunks_reused']} of 16 chunks" in capsys.readouterr().out
     assert json.loads((out / "ortho.json").read_text())["attrs"]["kernel"] == "CR"

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from tiledsm.cli.run import add_cluster_arguments, add_plan_arguments
+from tiledsm.cli.run import add_cluster_arguments, add_overwrite_argument, add_plan_arguments
 
 __all__ = ["add_parser"]
 
@@ -17,8 +17,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="bias-corrected RPCs from tie points, GCPs and a reference DEM (block adjustment)",
         description="Match multi-view tie points, adjust the RPCs' image-space bias (shift or affine A0..B2) "
         "against GCPs and/or a reference DEM, and write into --out, per image, <stem>_RPC.TXT and <stem>.tif "
-        "(a copy carrying the corrected RPC tags, usable by 'tiledsm dsm'), plus orient.json, residuals.csv "
-        "and residuals.png.",
+        "(a copy carrying the corrected RPC tags, usable by 'tiledsm dsm'), plus orient.json, residuals.csv, "
+        "residuals.png, metrics.json, recipe.resolved.yaml and run.log.",
     )
     p.add_argument("images", nargs="+", help="images with RPCs (tags or sidecars); the first is the tie-point reference")
     p.add_argument("--out", required=True, help="output folder")
@@ -39,47 +39,38 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    help="tie-point matcher: structural (Wallis, Förstner points, NCC along the RPC curve, "
                    "probability relaxation) or features (corners, NCC)")
     add_cluster_arguments(p)
+    add_overwrite_argument(p)
     add_plan_arguments(p, large=False)
     p.set_defaults(func=run)
 
 
+def orient_recipe(args: argparse.Namespace):
+    """The ``pipeline: orient`` recipe of the command's options, every path
+    absolute; a bad value is an :class:`~tiledsm.errors.InvalidOptionError`
+    naming the option."""
+    from tiledsm.cli.run import absolute_path, recipe_of_options
+    from tiledsm.orient.recipe import OrientRecipe
+
+    return recipe_of_options(OrientRecipe, {
+        "pipeline": "orient",
+        "name": Path(args.out).name,
+        "images": [absolute_path(p) for p in args.images],
+        "orient": {"gcps": absolute_path(args.gcps), "check_points": absolute_path(args.check_points),
+                   "dem": absolute_path(args.dem), "geoid": absolute_path(args.geoid), "model": args.model,
+                   "tie_points": not args.no_tie_points, "datum": args.datum, "tile": args.tile,
+                   "extractor": args.extractor},
+    })
+
+
 def run(args: argparse.Namespace) -> int:
-    from contextlib import nullcontext
+    import dataclasses
 
-    from tiledsm.cli.run import cluster_config, print_warnings
-    from tiledsm.cluster import compute_context
-    from tiledsm.orient.stage import OrientParams, orient_images, write_orientation
-    from tiledsm.orient.tracks import TrackParams
-    from tiledsm.plan import plan_orient
-    from tiledsm.io.lock import OutputLock
+    from tiledsm.cli.run import cluster_config, plan_and_run
+    from tiledsm.plan import RECIPE_NAMES
 
-    cluster = cluster_config(args)
-    plan = plan_orient(args.images, args.out, gcps=args.gcps, check_points=args.check_points, dem=args.dem,
-                       geoid=args.geoid, model=args.model, tie_points=not args.no_tie_points, tile=args.tile,
-                       cluster=cluster)
-    print_warnings("orient", plan.warnings)
-    if args.dry_run:
-        print(plan.summary())
-        return 0
-    prepared = plan.product
-    paths = {i.role: i.path for i in plan.inputs}  # absolute
-    params = OrientParams(model=args.model, tie_points=not args.no_tie_points, datum=args.datum,
-                          tracks=TrackParams(tile=args.tile, extractor=args.extractor))
-    with OutputLock(plan.out):
-        # the tie-point tiles are the only parallel part; GCP-only runs start no cluster
-        with compute_context(cluster) if params.tie_points and len(prepared.images) > 1 else nullcontext():
-            o = orient_images(prepared.images, paths.get("--gcps"), paths.get("--check-points"), prepared.dem,
-                              params, rpcs=prepared.rpcs)
-        datum_warning = [o.report["datum"]["warning"]] if "warning" in o.report["datum"] else []
-        doc = write_orientation(o, plan.out, params, extra={"command": "tiledsm orient",
-                                                            "warnings": plan.warnings + datum_warning,
-                                                            "inputs": {
-            "images": list(prepared.images), "gcps": paths.get("--gcps"),
-            "check_points": paths.get("--check-points"), "dem": paths.get("--dem"), "geoid": paths.get("--geoid")}})
-    _print_table(doc)
-    print(f"datum: {doc['datum']['fixed_by']}")
-    print_warnings("orient", datum_warning)
-    return 0
+    # the stage's plan names its fields by their options itself (tiledsm.plan.core.spelling); these are the cluster's
+    names = dataclasses.replace(RECIPE_NAMES, workers="--workers", scheduler="--scheduler")
+    return plan_and_run(orient_recipe(args), args, cluster_config(args), names, summary=_print_table)
 
 
 def _fmt(v) -> str:
@@ -97,3 +88,4 @@ def _print_table(doc: dict) -> None:
     print(f"tie points: {doc['n_tracks']} tracks, relative RMS {_fmt(tie['before'])} -> {_fmt(tie['after'])} px; "
           f"rejected measurements: {doc['n_rejected']}"
           + (f"; rejected GCPs: {', '.join(doc['rejected_gcps'])}" if doc["rejected_gcps"] else ""))
+    print(f"datum: {doc['datum']['fixed_by']}")

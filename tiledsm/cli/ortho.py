@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
-from tiledsm.cli.run import add_cluster_arguments, add_plan_arguments
+from tiledsm.cli.run import add_cluster_arguments, add_overwrite_argument, add_plan_arguments
 
 __all__ = ["add_parser"]
 
@@ -15,8 +16,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="orthoimage of an image (RPC or frame camera) on a DSM, occlusion-aware",
         description="Resample the image onto the DSM's ground grid (or a grid --resolution metres, dividing the "
         "DSM's cells) chunk by chunk, with cells hidden from the view set to NaN; write ortho.zarr, ortho.tif "
-        "(COG), ortho.png and ortho.json into --out. The DSM must use the camera's height datum (RPC: WGS84 "
-        "ellipsoidal).",
+        "(COG), ortho.png, ortho.json, metrics.json, recipe.resolved.yaml and run.log into --out. A rerun "
+        "resumes the chunks an interrupted run finished. The DSM must use the camera's height datum (RPC: "
+        "WGS84 ellipsoidal).",
     )
     p.add_argument("image", help="image with an RPC (tags or sidecar), or a frame image listed in --camera")
     p.add_argument("--dsm", required=True, help="DSM: GeoTIFF/COG or a tiledsm dsm.zarr store (then an image it was made from keeps the RPC it was matched with)")
@@ -31,28 +33,42 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--no-occlusion", action="store_true", help="do not mask cells hidden from the view")
     p.add_argument("--occlusion-tolerance", type=float, default=None, help="metres (default: one DSM cell)")
     add_cluster_arguments(p)
+    add_overwrite_argument(p)
     add_plan_arguments(p, large=False)
     p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    from tiledsm.cli.run import cluster_config, print_warnings
-    from tiledsm.ortho.stage import write_ortho_products
-    from tiledsm.plan import plan_ortho
-    from tiledsm.io.lock import OutputLock
+def ortho_recipe(args: argparse.Namespace):
+    """The ``pipeline: ortho`` recipe of the command's options, every path
+    absolute; a bad value is an :class:`~tiledsm.errors.InvalidOptionError`
+    naming the option."""
+    from tiledsm.cli.run import absolute_path, recipe_of_options
+    from tiledsm.ortho.recipe import OrthoRecipe
 
-    cluster = cluster_config(args)
-    plan = plan_ortho(
-        args.image, args.dsm, args.out, kernel=args.kernel, resolution=args.resolution, chunk=args.chunk,
-        camera_file=args.camera, bounds=args.bounds, crs=args.crs, occlusion=not args.no_occlusion,
-        occlusion_tolerance=args.occlusion_tolerance, cluster=cluster,
-    )
-    print_warnings("ortho", plan.warnings)
-    if args.dry_run:
-        print(plan.summary())
-        return 0
-    with OutputLock(plan.out):
-        report = write_ortho_products(plan.product, plan.out, cluster=cluster, warnings=plan.warnings)
-    print(f"{plan.out}/ortho.tif: {report['shape'][0]} x {report['shape'][1]} cells of {report['resolution_m']:g} m, "
-          f"{report['valid_share']:.0%} valid ({report['attrs']['kernel']})")
-    return 0
+    grid = dict(resolution=args.resolution, bounds=args.bounds, crs=args.crs, chunk=args.chunk)
+    return recipe_of_options(OrthoRecipe, {
+        "pipeline": "ortho",
+        "name": Path(args.out).name,
+        "input": {"image": absolute_path(args.image), "dsm": absolute_path(args.dsm),
+                  "camera": absolute_path(args.camera)},
+        "grid": {k: v for k, v in grid.items() if v is not None},
+        "ortho": {"kernel": args.kernel, "occlusion": not args.no_occlusion,
+                  "occlusion_tolerance": args.occlusion_tolerance},
+    })
+
+
+def run(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from tiledsm.cli.run import cluster_config, plan_and_run
+    from tiledsm.plan import RECIPE_NAMES
+
+    # the stage's plan names its fields by their options itself (tiledsm.plan.core.spelling); these are the cluster's
+    names = dataclasses.replace(RECIPE_NAMES, workers="--workers", scheduler="--scheduler")
+    return plan_and_run(ortho_recipe(args), args, cluster_config(args), names, summary=print_report)
+
+
+def print_report(metrics: dict) -> None:
+    """The run's summary: the ortho's size, cell and valid share."""
+    print(f"{metrics['out']}/ortho.tif: {metrics['shape'][0]} x {metrics['shape'][1]} cells of "
+          f"{metrics['resolution_m']:g} m, {metrics['valid_share']:.0%} valid ({metrics['attrs']['kernel']})")

@@ -44,7 +44,7 @@ def _as_dataset(obj) -> xr.Dataset:
     if isinstance(obj, xr.DataArray):
         name = obj.name if obj.name is not None else _UNNAMED
         ds = obj.to_dataset(name=name, promote_attrs=False)
-        ds.attrs = {_DA_ATTR: name}
+        ds.attrs = {_DA_ATTR: name, **{k: obj.attrs[k] for k in ("fingerprint",) if k in obj.attrs}}  # the store's
         return ds
     if isinstance(obj, xr.Dataset):
         return obj

@@ -4,7 +4,10 @@ bias-compensated RPC block adjustment with GCPs and a reference DEM.
 Pure kernels (:mod:`~tiledsm.orient.bias`, :mod:`~tiledsm.orient.adjust`,
 :mod:`~tiledsm.orient.p2l`) work on arrays; :mod:`~tiledsm.orient.tracks`
 tiles the matching with dask; :mod:`~tiledsm.orient.stage` reads the inputs
-and writes the corrected RPCs.
+and writes the corrected RPCs. The stage (``pipeline: orient``, ``tiledsm
+orient``): its recipe (:mod:`~tiledsm.orient.recipe`; parameters
+:mod:`~tiledsm.orient.spec`), plan
+(:mod:`~tiledsm.orient.plan`) and runner (:mod:`~tiledsm.orient.run`).
 
 The package's names are loaded from their modules on first use (PEP 562):
 a recipe model needs :class:`~tiledsm.orient.spec.OrientSpec`, not the
@@ -23,6 +26,7 @@ _HOME = {name: module for module, names in (
     ("dem", ("ReferenceDEM",)),
     ("p2l", ("P2LParams", "P2LResult", "p2l_distances", "p2l_filter", "ransac_filter")),
     ("points", ("ControlPoints", "read_points")),
+    ("recipe", ("OrientRecipe",)),
     ("spec", ("OrientSpec", "orient_for_recipe", "polygon_exclusion")),
     ("stage", ("Orientation", "OrientParams", "orient_images", "write_orientation")),
     ("tracks", ("Guide", "TrackParams", "Tracks", "coarse_guide", "tie_point_tracks")),

@@ -1,4 +1,6 @@
-"""The recipe section ``orient:`` and the step the pipelines run with it.
+"""The recipe section ``orient:`` (the parameters of ``tiledsm orient`` and
+of :class:`tiledsm.orient.recipe.OrientRecipe` too) and the step the
+pipelines run with it.
 
 A ``dsm`` (or ``deformation``) recipe with an ``orient:`` section orients
 its images first (:func:`tiledsm.orient.stage.orient_images`: tie points,
@@ -28,29 +30,52 @@ from typing import Callable, Literal, Optional, Sequence
 import numpy as np
 from pydantic import Field, model_validator
 
-from tiledsm.recipes import StrictModel
+from tiledsm.recipes import StrictModel, option
 
 __all__ = ["OrientSpec", "orient_for_recipe", "polygon_exclusion"]
 
 
 class OrientSpec(StrictModel):
-    """``orient:`` — bias-compensated orientation of the images before
-    their DSM (:mod:`tiledsm.orient`)."""
+    """``orient:`` — bias-compensated orientation of images
+    (:mod:`tiledsm.orient`): the section of a ``dsm`` (or ``deformation``)
+    recipe that orients its images first, and the parameters of
+    ``pipeline: orient`` (``tiledsm orient``, whose options the fields name)."""
 
-    gcps: Optional[str] = Field(None, description="GCP file: CSV id,image,lon,lat,h,row,col or GeoJSON points")
-    check_points: Optional[str] = Field(None, description="check points (same formats), left out of the fit")
-    dem: Optional[str] = Field(None, description="reference DEM (e.g. SRTM) constraining tie-point heights")
-    geoid: Optional[str] = Field(None, description="geoid grid (.gtx) the DEM's heights refer to (SRTM: EGM96)")
+    gcps: Optional[str] = Field(None, description="GCP file: CSV id,image,lon,lat,h,row,col or GeoJSON points",
+                                json_schema_extra=option("--gcps"))
+    check_points: Optional[str] = Field(None, description="check points (same formats), left out of the fit",
+                                        json_schema_extra=option("--check-points"))
+    dem: Optional[str] = Field(None, description="reference DEM (e.g. SRTM) constraining tie-point heights",
+                               json_schema_extra=option("--dem"))
+    geoid: Optional[str] = Field(None, description="geoid grid (.gtx) the DEM's heights refer to (SRTM: EGM96)",
+                                 json_schema_extra=option("--geoid"))
     model: Optional[Literal["shift", "affine"]] = Field(
-        None, description="bias model of every image; left out: chosen per image by point count")
+        None, description="bias model of every image; left out: chosen per image by point count",
+        json_schema_extra=option("--model"))
     extractor: Literal["structural", "features"] = Field(
-        "structural", description="tie-point matcher: structural (Wallis, Förstner, relaxation) or features")
+        "structural", description="tie-point matcher: structural (Wallis, Förstner, relaxation) or features",
+        json_schema_extra=option("--extractor"))
+    tie_points: bool = Field(True, description="match tie points (false: adjust on GCPs only)",
+                             json_schema_extra=option("--no-tie-points"))
+    datum: Literal["consensus", "mean", "priors"] = Field(
+        "consensus", description="without GCPs or DEM, how the block is held (tiledsm.orient.datum)",
+        json_schema_extra=option("--datum"))
+    tile: int = Field(512, ge=64, description="tie-point tile side, pixels", json_schema_extra=option("--tile"))
 
     @model_validator(mode="after")
     def _geoid_needs_dem(self):
         if self.geoid is not None and self.dem is None:
             raise ValueError("'geoid' is the reference DEM's datum: give 'dem' too")
         return self
+
+    def params(self):
+        """The :class:`~tiledsm.orient.stage.OrientParams` of these fields
+        (the adjustment's other parameters at their defaults)."""
+        from tiledsm.orient.stage import OrientParams
+        from tiledsm.orient.tracks import TrackParams
+
+        return OrientParams(model=self.model, tie_points=self.tie_points, datum=self.datum,
+                            tracks=TrackParams(tile=self.tile, extractor=self.extractor))
 
 
 def polygon_exclusion(path: str | Path) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
@@ -120,8 +145,7 @@ def orient_for_recipe(
     """
     from tiledsm.io.cameras import find_camera
     from tiledsm.orient.dem import ReferenceDEM
-    from tiledsm.orient.stage import OrientParams, orient_images, write_orientation
-    from tiledsm.orient.tracks import TrackParams
+    from tiledsm.orient.stage import orient_images, write_orientation
 
     out = Path(out_dir)
     paths = [Path(p) for p in images]
@@ -144,7 +168,7 @@ def orient_for_recipe(
             with rasterio.open(p) as ds:
                 shapes.append((ds.height, ds.width))
         dem = ReferenceDEM.for_cameras(spec.dem, cams, shapes, geoid=spec.geoid)
-    params = OrientParams(model=spec.model, tracks=TrackParams(extractor=spec.extractor))
+    params = spec.params()
     o = orient_images(paths, spec.gcps, spec.check_points, dem, params, rpcs=cams, exclude=exclude)
     doc = write_orientation(o, out, params, extra={"inputs": inputs})
     return corrected, None, doc

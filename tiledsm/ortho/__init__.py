@@ -3,6 +3,11 @@ of any image (RPC or frame camera) on a DSM, with occlusion.
 
 Public API: :data:`KERNELS`, :func:`get_kernel`, :func:`sample` (kernels);
 :func:`orthorectify` and :class:`OrthoParams` (:mod:`tiledsm.ortho.rectify`).
+
+The stage (``pipeline: ortho``, ``tiledsm ortho``): its recipe
+(:mod:`tiledsm.ortho.recipe`), its plan (:mod:`tiledsm.ortho.plan`), its
+runner (:mod:`tiledsm.ortho.run`) and its products
+(:mod:`tiledsm.ortho.stage`).
 """
 
 from tiledsm.ortho.kernels import KERNELS, Kernel, get_kernel, register_kernel, sample

@@ -23,7 +23,10 @@ from tiledsm.cluster import ClusterConfig, compute_context, compute_with_progres
 from tiledsm.errors import InvalidOptionError
 from tiledsm.ortho.rectify import ImageSource, OrthoParams, orthorectify
 
-__all__ = ["open_source", "matched_camera", "open_dsm", "resolution_factor", "ortho_files", "write_ortho_products"]
+__all__ = [
+    "open_source", "matched_camera", "open_dsm", "resolution_factor", "ortho_files", "ortho_fingerprint",
+    "write_ortho_products",
+]
 
 
 def matched_camera(dsm: str | Path, image: str | Path):
@@ -129,25 +132,64 @@ def ortho_files(
     return orthorectify(source, height, params, chunk=chunk, bounds=bounds, crs=crs)
 
 
+def ortho_fingerprint(ortho: xr.DataArray, image: str, dsm: str, camera_file: str | None, params: dict) -> dict:
+    """Everything that determines ``ortho`` (:func:`ortho_files` of these
+    files), as plain JSON (:func:`tiledsm.provenance.fingerprint`): the
+    identity of the image, of the DSM (a ``.zarr`` store: of its
+    ``zarr.json``, which holds a tiledsm DSM's own fingerprint) and of the
+    camera file; the RPC used (a sidecar's, or the one a DSM store matched
+    the image with); the ortho grid and chunk; ``params`` (the kernel,
+    occlusion and its tolerance...); the package version and code. An ``ortho.zarr`` is resumed only under
+    the same fingerprint."""
+    from tiledsm.geometry.rpc import RPC
+    from tiledsm.provenance import fingerprint, input_identity
+
+    dsm_file = Path(dsm) / "zarr.json" if Path(dsm).is_dir() else Path(dsm)
+    camera = open_source(image, camera_file, dsm=dsm).camera
+    t = ortho.rio.transform()
+    return fingerprint(
+        inputs={"image": input_identity(image), "dsm": input_identity(dsm_file),
+                "camera": input_identity(camera_file) if camera_file else None},
+        rpc=camera if isinstance(camera, RPC) else None,  # a frame camera is its file's
+        grid={"crs": str(ortho.rio.crs), "transform": list(t)[:6], "shape": list(ortho.shape),
+              "chunk": int(ortho.chunks[0][0])},
+        params={**params, **{k: ortho.attrs[k] for k in ("kernel", "factor", "occlusion", "halo_cells")}},
+    )
+
+
 def write_ortho_products(
     ortho: xr.DataArray, out: str | Path, *, cluster: ClusterConfig = ClusterConfig(), cog: bool = True,
-    quicklook: bool = True, name: str = "ortho", warnings: Sequence[str] = (),
+    quicklook: bool = True, name: str = "ortho", warnings: Sequence[str] = (), resume: bool = False,
+    overwrite: bool = False,
 ) -> dict:
-    """Compute ``ortho`` into ``out/NAME.zarr`` (atomic), export
-    ``NAME.tif`` (COG) and ``NAME.png``, write ``NAME.json`` (attrs, valid
-    share, timings, the plan's ``warnings``) last. Products of an earlier run under these names are
-    withdrawn first (the report first), so an interrupted run never leaves
-    an old report or export beside a new store. Returns the report."""
-    from tiledsm.io import atomic_path, open_product, withdraw, write_cog, write_zarr
+    """Compute ``ortho`` into ``out/NAME.zarr``, export ``NAME.tif`` (COG)
+    and ``NAME.png``, write ``NAME.json`` (attrs, valid share, timings, the
+    plan's ``warnings``) last. Products of an earlier run under these names
+    are withdrawn first (the report first), so an interrupted run never
+    leaves an old report or export beside a new store.
+
+    The store is written whole and atomically, or, with ``resume``, chunk
+    by chunk (:func:`tiledsm.io.write_resumable`): chunks finished by an
+    interrupted run of the same fingerprint (``ortho.attrs["fingerprint"]``,
+    :func:`ortho_fingerprint`) are kept, only the others computed;
+    ``overwrite`` discards them. Returns the report (with ``resume``, its
+    ``timings.chunks`` says how many chunks were reused)."""
+    from tiledsm.io import atomic_path, open_product, withdraw, write_cog, write_resumable, write_zarr
     from tiledsm.quicklook import quicklook as make_quicklook
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     withdraw(out, [f"{name}.json", f"{name}.tif", f"{name}.png"])
     t0 = time.perf_counter()
+    chunks: dict = {}
     with compute_context(cluster) as client:
-        write_zarr(ortho, out / f"{name}.zarr",
-                   compute=lambda d: compute_with_progress(d, config=cluster, client=client))
+        def compute(d):
+            return compute_with_progress(d, config=cluster, client=client)
+
+        if resume:
+            write_resumable(ortho, out / f"{name}.zarr", compute=compute, overwrite=overwrite, report=chunks)
+        else:
+            write_zarr(ortho, out / f"{name}.zarr", compute=compute)
     t1 = time.perf_counter()
     stored = open_product(out / f"{name}.zarr")
     if cog:
@@ -155,14 +197,15 @@ def write_ortho_products(
     if quicklook:
         make_quicklook(stored, out / f"{name}.png", kind="image", title=f"{name} ({ortho.attrs.get('kernel', '')})")
     report = {
-        "attrs": {k: v for k, v in ortho.attrs.items()},
+        "attrs": {k: v for k, v in ortho.attrs.items() if k != "fingerprint"},
         "shape": list(ortho.shape),
         "resolution_m": float(abs(ortho.rio.transform().a)),
         "crs": str(ortho.rio.crs),
         "valid_share": float(np.isfinite(stored.data).mean().compute()),
-        "timings": {"ortho_s": t1 - t0, "export_s": time.perf_counter() - t1},
+        "timings": {"ortho_s": t1 - t0, "export_s": time.perf_counter() - t1, **({"chunks": chunks} if chunks else {})},
         "warnings": list(warnings),
     }
     with atomic_path(out / f"{name}.json") as tmp:
         Path(tmp).write_text(json.dumps(report, indent=2, default=str))
     return report
+

@@ -1,10 +1,9 @@
 """Plan a run before anything runs: check it, size it, refuse it in seconds.
 
 A :class:`Plan` is made before any cluster starts or any chunk is computed,
-by :func:`tiledsm.pipelines.plan_recipe` (``tiledsm dsm``, ``sr``, ``compare`` and ``run``:
-the plan of each pipeline is its stage's, :attr:`tiledsm.pipelines.Pipeline.plan`),
-:func:`plan_ortho` (``tiledsm ortho``) and
-:func:`plan_orient` (``tiledsm orient``). It
+by :func:`tiledsm.pipelines.plan_recipe` (``tiledsm dsm``, ``sr``, ``compare``, ``ortho``,
+``orient`` and ``run``: the plan of each pipeline is its stage's,
+:attr:`tiledsm.pipelines.Pipeline.plan`). It
 
 - resolves every path to an absolute one (a relative ``--out`` then means
   the same folder to workers started elsewhere, e.g. on an external
@@ -40,9 +39,9 @@ the plan of each pipeline is its stage's, :attr:`tiledsm.pipelines.Pipeline.plan
 opened views, tie points and lazy DSM, so nothing is done twice.
 
 The package: :mod:`.core` (the plan, limits, shared checks), :mod:`.memory`
-(worker memory, level sizes), :mod:`.dsm`, :mod:`.recipes` (whole recipes),
-:mod:`.imagery` (``ortho``,
-``orient``).
+(worker memory, level sizes), :mod:`.dsm` and :mod:`.recipes` (whole
+recipes); the plans of ``sr``, ``compare``, ``ortho`` and ``orient`` are
+their stage packages' (e.g. :mod:`tiledsm.ortho.plan`).
 
 Conventions: sizes in cells are ``rows x columns``; memory in bytes (MiB
 and GiB in text are 2**20 and 2**30 bytes); heights are ellipsoidal metres.
@@ -77,10 +76,6 @@ from tiledsm.plan.recipes import (
     check_sr_weights,
     plan_inputs,
 )
-from tiledsm.plan.imagery import (
-    plan_ortho,
-    plan_orient,
-)
 
 __all__ = [
     "RECIPE_NAMES",
@@ -101,8 +96,6 @@ __all__ = [
     "check_sr_weights",
     "plan_dsm",
     "plan_inputs",
-    "plan_ortho",
-    "plan_orient",
     "WORKER_BASELINE_MIB",
     "LOW_COMPLETENESS",
     "MOSTLY_OUTSIDE",

@@ -212,6 +212,17 @@ class Plan:
 
 
 # --------------------------------------------------------------------------- generic checks
+def namer(model, plan: Plan):
+    """``name(path)``: how a message of ``plan`` names the field ``path`` of
+    the recipe model ``model`` (:func:`tiledsm.recipes.spelling`): its
+    option when a stage's own command made the plan (``tiledsm ortho``...),
+    its path under ``tiledsm run``."""
+    from tiledsm.recipes import spelling
+
+    names = spelling(model, by_option=plan.command != "run")
+    return lambda path: names.get(path, path)
+
+
 def existing_file(path: str | os.PathLike, name: str) -> str:
     """``path`` made absolute; :class:`~tiledsm.errors.InputFileError`
     naming the option/field ``name`` when it is not a file (zarr stores,

@@ -29,7 +29,8 @@ class DSMRecipe(StrictModel):
     match: MatchSpec = MatchSpec()
     cluster: ClusterSpec = ClusterSpec()
     output: OutputSpec = Field(OutputSpec(), json_schema_extra=option("--geoid"))  # the command's only output option
-    orient: Optional[OrientSpec] = Field(None, description="orient the images first (GCPs, reference DEM); the DSM uses the corrected RPCs")
+    orient: Optional[OrientSpec] = Field(None, description="orient the images first (GCPs, reference DEM); the DSM uses the corrected RPCs",
+                                         json_schema_extra=option(None))  # recipes only: `tiledsm orient`'s options
 
 
 def run_dsm(
