@@ -29,11 +29,11 @@ from tiledsm.errors import RecipeError
 from tiledsm.plan.dsm import plan_dsm
 from tiledsm.recipes import dump_resolved, format_errors, read_recipe
 from tiledsm.workflows.common import setup_log, withdraw_products
-from tiledsm.workflows.deformation import DeformationRecipe, run_deformation
+from tiledsm.workflows.deformation import DeformationRecipe, plan_deformation, run_deformation
 from tiledsm.workflows.displace import DisplaceRecipe, run_displace
 from tiledsm.workflows.dsm import DSMRecipe, run_dsm
 from tiledsm.workflows.ortho_sr import OrthoSRRecipe, run_ortho_sr
-from tiledsm.workflows.sr_dsm import SRDSMRecipe, run_sr_dsm
+from tiledsm.workflows.sr_dsm import SRDSMRecipe, plan_sr_dsm, run_sr_dsm
 from tiledsm.workflows.train_sr import TrainSRRecipe, run_train_sr
 
 log = logging.getLogger("tiledsm")
@@ -60,8 +60,8 @@ class Pipeline:
 #: every pipeline a recipe may name
 PIPELINES: dict[str, Pipeline] = {
     "dsm": Pipeline(DSMRecipe, run_dsm, plan=plan_dsm),
-    "sr_dsm": Pipeline(SRDSMRecipe, run_sr_dsm),
-    "deformation": Pipeline(DeformationRecipe, run_deformation),
+    "sr_dsm": Pipeline(SRDSMRecipe, run_sr_dsm, plan=plan_sr_dsm),
+    "deformation": Pipeline(DeformationRecipe, run_deformation, plan=plan_deformation),
     "ortho_sr": Pipeline(OrthoSRRecipe, run_ortho_sr),
     "train_sr": Pipeline(TrainSRRecipe, run_train_sr),
     "displace": Pipeline(DisplaceRecipe, run_displace),
