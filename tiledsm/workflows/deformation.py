@@ -348,7 +348,7 @@ def plan_deformation(plan, recipe: DeformationRecipe, cluster=None, *, overwrite
     check_recipe_inputs(plan, recipe)
     out, inp = plan.out, recipe.input
     if inp.synth is not None:
-        from tiledsm.synth.scene import scene_layout
+        from tiledsm.synth.layout import scene_layout
 
         sy = inp.synth
         lay = scene_layout(sy.size, sy.gsd, sy.bh, sy.seed, sy.views, True, event_params=_event_params(sy))

@@ -501,7 +501,7 @@ def plan_sr_dsm(plan, recipe: SRDSMRecipe, cluster=None, *, overwrite: bool = Fa
     check_recipe_inputs(plan, recipe)
     out, inp, s = plan.out, recipe.input, recipe.sr.scale
     if inp.synth is not None:
-        from tiledsm.synth.scene import scene_layout
+        from tiledsm.synth.layout import scene_layout
 
         sy = inp.synth
         lay = scene_layout(sy.size, sy.gsd, sy.bh, sy.seed, sy.views, False)

@@ -11,7 +11,7 @@ limits, every input opened and checked once) and written by
 
 A synthetic scene does not exist when a run is planned:
 :func:`plan_unmade_dsm` plans its DSM from the scene's parameters (its
-truth grid and fitted cameras, :func:`tiledsm.synth.scene.scene_layout`).
+truth grid and fitted cameras, :func:`tiledsm.synth.layout.scene_layout`).
 """
 
 from __future__ import annotations
@@ -87,10 +87,10 @@ def synthetic_views(layout, cameras, paths: Sequence[Path], *, first_view: int =
     the RPCs :func:`tiledsm.synth.make_scene` fits to ``cameras`` (view
     numbers from ``first_view``: 100 for post-event views)."""
     from tiledsm.dsm.views import View
-    from tiledsm.synth.scene import fit_view_rpc
+    from tiledsm.synth.layout import fit_view
 
     size = layout.grid.width
-    return [View(str(path), fit_view_rpc(cam, layout.height_range, first_view + i), (size, size))
+    return [View(str(path), fit_view(cam, layout.height_range, first_view + i)[0], (size, size))
             for i, (cam, path) in enumerate(zip(cameras, paths))]
 
 
