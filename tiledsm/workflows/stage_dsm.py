@@ -51,11 +51,16 @@ def grid_spec(grid, chunk: int | None = None) -> GridSpec:
 
 def plan_stage_dsm(recipe: DSMRecipe, folder: Path, cluster=None, *, overwrite: bool = False,
                    limits: Limits = Limits()) -> Plan:
-    """The DSM stage's plan of ``recipe`` into ``folder`` (as ``tiledsm dsm``
-    plans it: checks, grid, memory-fitted chunk, levels, reuse)."""
-    from tiledsm.plan.recipes import plan_recipe
+    """The DSM stage's plan of ``recipe`` into ``folder`` (as ``tiledsm run``
+    plans a ``dsm`` recipe: workers and the folder's lock, then
+    :func:`tiledsm.plan.dsm.plan_dsm`'s checks, grid, memory-fitted chunk,
+    levels and reuse)."""
+    from tiledsm.plan.core import RECIPE_NAMES, new_plan
+    from tiledsm.plan.dsm import plan_dsm
 
-    return plan_recipe(recipe, folder, cluster, overwrite=overwrite, limits=limits)
+    plan = new_plan("run", folder, cluster, limits=limits, workers=RECIPE_NAMES.workers,
+                    scheduler=RECIPE_NAMES.scheduler)
+    return plan_dsm(plan, recipe, cluster, overwrite=overwrite, names=RECIPE_NAMES)
 
 
 def run_stage_dsm(plan: Plan, recipe: DSMRecipe, folder: Path, cluster, *, overwrite: bool = False) -> dict:
