@@ -343,7 +343,9 @@ def plan_deformation(plan, recipe: DeformationRecipe, cluster=None, *, overwrite
     with ``orient:`` the DSMs are planned on the given images (the run
     plans them again on the corrected ones)."""
     from tiledsm.plan.recipes import check_recipe_inputs
-    from tiledsm.workflows.stage_dsm import SYNTH_ITEMSIZE, grid_spec, plan_unmade_dsm, scene_heights, synthetic_views
+    from tiledsm.workflows.stage_dsm import (
+        SYNTH_ITEMSIZE, add_stages, grid_spec, plan_unmade_dsm, scene_heights, synthetic_views,
+    )
 
     check_recipe_inputs(plan, recipe)
     out, inp = plan.out, recipe.input
@@ -373,12 +375,7 @@ def plan_deformation(plan, recipe: DeformationRecipe, cluster=None, *, overwrite
         if recipe.orient is not None:
             plan.notes.append("orient: the DSMs are planned on the given images; the run plans them again on the "
                               "bias-corrected copies")
-    plan.stages = stages
-    for name, stage in stages:
-        plan.warnings += [f"{name}: {w}" for w in stage.warnings]
-        plan.notes += [f"{name}: {n}" for n in stage.notes]
-    plan.reuse = "per DSM (above); compare/ is recomputed from the two DSMs"
-    return plan
+    return add_stages(plan, stages, "per DSM (above); compare/ is recomputed from the two DSMs")
 
 
 # --------------------------------------------------------------------------- runner

@@ -495,7 +495,7 @@ def plan_sr_dsm(plan, recipe: SRDSMRecipe, cluster=None, *, overwrite: bool = Fa
     from tiledsm.dsm.views import View
     from tiledsm.plan.recipes import check_recipe_inputs
     from tiledsm.workflows.stage_dsm import (
-        SYNTH_ITEMSIZE, plan_stage_dsm, plan_unmade_dsm, scene_heights, synthetic_views,
+        SYNTH_ITEMSIZE, add_stages, plan_stage_dsm, plan_unmade_dsm, scene_heights, synthetic_views,
     )
 
     check_recipe_inputs(plan, recipe)
@@ -535,12 +535,7 @@ def plan_sr_dsm(plan, recipe: SRDSMRecipe, cluster=None, *, overwrite: bool = Fa
         sub = _dsm_recipe(recipe, [v.path for v in sr_views], grid, out / name)
         stages.append((name, plan_unmade_dsm(out / name, sr_views, h_range, sub, itemsize=SR_ITEMSIZE,
                                              limits=plan.limits)[0]))
-    plan.stages = stages
-    for name, stage in stages:
-        plan.warnings += [f"{name}: {w}" for w in stage.warnings]
-        plan.notes += [f"{name}: {n}" for n in stage.notes]
-    plan.reuse = "per DSM (above)"
-    return plan
+    return add_stages(plan, stages, "per DSM (above)")
 
 
 #: bytes per pixel of the SR images (float32 DN, :func:`_super_resolve_file`)

@@ -23,7 +23,7 @@ from tiledsm.plan.core import Limits, Plan
 from tiledsm.recipes import GridSpec, InputSpec, MatchSpec, OutputSpec
 from tiledsm.workflows.dsm import DSMRecipe
 
-__all__ = ["dsm_recipe", "grid_spec", "plan_stage_dsm", "run_stage_dsm", "stage_report", "synthetic_views", "plan_unmade_dsm",
+__all__ = ["dsm_recipe", "grid_spec", "plan_stage_dsm", "run_stage_dsm", "add_stages", "stage_report", "synthetic_views", "plan_unmade_dsm",
            "scene_heights", "SYNTH_ITEMSIZE"]
 
 #: bytes per pixel of a synthetic scene's images (uint16, :func:`tiledsm.synth.make_scene`)
@@ -78,6 +78,17 @@ def run_stage_dsm(plan: Plan, recipe: DSMRecipe, folder: Path, cluster, *, overw
     metrics = run_dsm(recipe, folder, cluster, overwrite=overwrite, plan=plan)
     dump_resolved(recipe, folder / "recipe.resolved.yaml")
     return metrics
+
+
+def add_stages(plan: Plan, stages: list[tuple[str, Plan]], reuse: str) -> Plan:
+    """Give a pipeline's ``plan`` the plans of its DSMs (:attr:`Plan.stages`),
+    their warnings and notes (each prefixed by the DSM's name) and ``reuse``."""
+    plan.stages = stages
+    for name, stage in stages:
+        plan.warnings += [f"{name}: {w}" for w in stage.warnings]
+        plan.notes += [f"{name}: {n}" for n in stage.notes]
+    plan.reuse = reuse
+    return plan
 
 
 def stage_report(metrics: dict) -> dict:
