@@ -19,7 +19,9 @@ Usage::
 
     nice -n 10 .venv/bin/python benchmarks/workflow_memory.py --deformation-sizes 1024 4096 --sr-sizes 512 2048
 
-Writes ``benchmarks/results/workflow_memory.json`` and prints a table;
+``--append`` keeps the rows already in the JSON for cases not run now (a
+size measured by a later, separate run). Writes
+``benchmarks/results/workflow_memory.json`` and prints a table;
 ``ratio`` is the larger size's largest-process peak over the smaller's
 (target: <= 1.25).
 """
@@ -27,6 +29,7 @@ Writes ``benchmarks/results/workflow_memory.json`` and prints a table;
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import subprocess
@@ -79,6 +82,8 @@ def main(argv=None) -> int:
     p.add_argument("--runs", type=Path, default=REPO / "runs" / "workflow_memory")
     p.add_argument("--timeout", type=float, default=3600.0, help="seconds per run")
     p.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "workflow_memory.json")
+    p.add_argument("--append", action="store_true",
+                   help="keep the rows of --json for the cases not run now (e.g. one more size measured later)")
     args = p.parse_args(argv)
 
     rows = []
@@ -102,6 +107,13 @@ def main(argv=None) -> int:
               f"{m.peak_descendant_rss_mib:.0f})  load {m.load_before:.1f} -> {m.load_after:.1f}", flush=True)
         if not m.ok:
             print((folder / "run.out").read_text()[-3000:])
+    earlier, before = [], ""
+    if args.append and args.json.exists():
+        ran = {(r["pipeline"], r["size"]) for r in rows}
+        doc = json.loads(args.json.read_text())
+        earlier = [r for r in doc["rows"] if (r["pipeline"], r["size"]) not in ran]
+        before = doc["command"] + "; then "
+    rows = earlier + rows
     ratios = {}
     for pipeline in ("deformation", "sr_dsm"):
         done = sorted((r for r in rows if r["pipeline"] == pipeline and r["ok"]), key=lambda r: r["size"])
@@ -117,7 +129,7 @@ def main(argv=None) -> int:
     for pipeline, ratio in ratios.items():
         print(f"{pipeline}: largest process {ratio['sizes'][1]} px / {ratio['sizes'][0]} px = {ratio['ratio']} "
               f"(target <= {TARGET_RATIO})")
-    command = "nice -n 10 .venv/bin/python benchmarks/workflow_memory.py " + " ".join(argv or sys.argv[1:])
+    command = before + "nice -n 10 .venv/bin/python benchmarks/workflow_memory.py " + " ".join(argv or sys.argv[1:])
     write_result(args.json, "workflow_memory", command, rows, ratios=ratios,
                  left_out={"deformation": "displacement section" if not args.with_displacement else "nothing",
                            "sr_dsm": f"SR models other than {list(args.sr_models)}"})
