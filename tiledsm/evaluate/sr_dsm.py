@@ -12,8 +12,8 @@ and, with a synthetic truth, the four-region breakdown.
 No grid-sized array is held: every DSM, truth and mask is read lazily
 and decimated to at most :data:`MAX_TABLE_CELLS` cells (every ``step``-th
 row and column, the same cells for every array; ``step`` is 1 up to
-1024² cells, so small runs are scored on every cell). Region slopes are
-taken on the decimated truth (cells ``step`` times larger).
+768² cells, so the shipped recipes are scored on every cell). Region
+slopes are taken on the decimated truth (cells ``step`` times larger).
 """
 
 from __future__ import annotations
@@ -30,8 +30,10 @@ from tiledsm.workflows.sr_scores import RegionRule, compare_by_region, compare_o
 
 __all__ = ["MAX_TABLE_CELLS", "SRDSMTruth", "table_step", "score", "score_tables", "write_blunder_map"]
 
-#: the tables are scored on at most this many cells (a decimated grid beyond)
-MAX_TABLE_CELLS = 1024 * 1024
+#: the tables are scored on at most this many cells (a decimated grid beyond):
+#: every cell of the shipped recipes' grids (512², s2p's 739 x 721), and this
+#: process's share of the tables stays the same for any larger scene
+MAX_TABLE_CELLS = 768 * 768
 
 
 @dataclass(frozen=True)

@@ -365,7 +365,7 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
     Each DSM is made by the DSM stage into its folder
     (:mod:`tiledsm.workflows.stage_dsm`); image quality is reduced block by
     block, the DSM tables are :func:`tiledsm.evaluate.sr_dsm.score`'s (on a
-    decimated grid beyond 1024² cells): no grid-sized array comes to this
+    decimated grid beyond 768² cells): no grid-sized array comes to this
     process.
 
     Returns the metrics written to ``out/metrics.json``: per method, the
@@ -450,7 +450,7 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
                 _, row["dsm"], _ = make_dsm(sr_views, grid, folder)
             methods[name] = row
             timings[name] = time.perf_counter() - t0
-        # 4. the tables (decimated beyond 1024² cells) and the blunder map
+        # 4. the tables (decimated beyond 768² cells) and the blunder map
         t0 = time.perf_counter()
         with compute_context(run_cluster):
             tables = score(out, truth, list(sr.models))
