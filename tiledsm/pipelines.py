@@ -42,11 +42,11 @@ from tiledsm.sr.plan import plan_sr
 from tiledsm.sr.recipe import SRRecipe
 from tiledsm.sr.run import run_sr
 from tiledsm.workflows.common import setup_log, withdraw_products
-from tiledsm.workflows.deformation import DeformationRecipe, run_deformation
+from tiledsm.workflows.deformation import DeformationRecipe, plan_deformation, run_deformation
 from tiledsm.workflows.displace import DisplaceRecipe, run_displace
 from tiledsm.workflows.dsm import DSMRecipe, run_dsm
 from tiledsm.workflows.ortho_sr import OrthoSRRecipe, run_ortho_sr
-from tiledsm.workflows.sr_dsm import SRDSMRecipe, run_sr_dsm
+from tiledsm.workflows.sr_dsm import SRDSMRecipe, plan_sr_dsm, run_sr_dsm
 from tiledsm.workflows.train_sr import TrainSRRecipe, run_train_sr
 
 log = logging.getLogger("tiledsm")
@@ -73,8 +73,8 @@ class Pipeline:
 #: every pipeline a recipe may name
 PIPELINES: dict[str, Pipeline] = {
     "dsm": Pipeline(DSMRecipe, run_dsm, plan=plan_dsm),
-    "sr_dsm": Pipeline(SRDSMRecipe, run_sr_dsm),
-    "deformation": Pipeline(DeformationRecipe, run_deformation),
+    "sr_dsm": Pipeline(SRDSMRecipe, run_sr_dsm, plan=plan_sr_dsm),
+    "deformation": Pipeline(DeformationRecipe, run_deformation, plan=plan_deformation),
     "ortho_sr": Pipeline(OrthoSRRecipe, run_ortho_sr),
     "train_sr": Pipeline(TrainSRRecipe, run_train_sr),
     "displace": Pipeline(DisplaceRecipe, run_displace),

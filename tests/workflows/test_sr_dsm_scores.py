@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tiledsm.workflows.sr_dsm import _score_tables
+from tiledsm.evaluate.sr_dsm import score_tables as _score_tables
 from tiledsm.workflows.sr_figures import blunder_map
 from tiledsm.workflows.sr_scores import (
     BLUNDER_K,

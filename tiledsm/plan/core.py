@@ -158,6 +158,10 @@ class Plan:
         The recipe as the run must use it when the plan changed it (a chunk
         side chosen to fit a worker's memory); its resolved form is what
         ``recipe.resolved.yaml`` records.
+    stages : list of (str, Plan)
+        The plans of the DSMs a pipeline makes (e.g. ``pre`` and ``post``
+        of a deformation run), each into its own sub-folder; the summary
+        shows each one's grid, levels and memory.
     """
 
     command: str
@@ -177,6 +181,7 @@ class Plan:
     prepared: PreparedDSM | None = field(default=None, repr=False)
     product: Any = field(default=None, repr=False)
     recipe: Any = field(default=None, repr=False)
+    stages: list[tuple[str, "Plan"]] = field(default_factory=list, repr=False)
 
     def warn(self, message: str) -> None:
         """Add a warning (the command prints it; a run logs it in ``run.log``
@@ -188,6 +193,20 @@ class Plan:
         rows: list[tuple[str, str]] = [("out", str(self.out)), ("cluster", self.cluster)]
         rows += [("inputs" if k == 0 else "", f"{i.role}: {i.path}" + (f" ({i.detail})" if i.detail else ""))
                  for k, i in enumerate(self.inputs)]
+        rows += self._stage_rows()
+        for name, stage in self.stages:
+            rows.append((name, f"DSM into {stage.out}"))
+            rows += [(f"{name} {key}" if key else "", value) for key, value in stage._stage_rows() + [("reuse", stage.reuse)]]
+        rows.append(("reuse", self.reuse))
+        rows += [("notes" if k == 0 else "", n) for k, n in enumerate(self.notes)]
+        rows += [("warnings" if k == 0 else "", w) for k, w in enumerate(self.warnings)] or [("warnings", "none")]
+        width = max(len(k) for k, _ in rows)
+        head = f"plan of tiledsm {self.command} (nothing computed, nothing written)"
+        return "\n".join([head] + [f"  {k:<{width}}  {v}" for k, v in rows])
+
+    def _stage_rows(self) -> list[tuple[str, str]]:
+        """Heights, grid, levels, tasks and memory, as summary rows."""
+        rows: list[tuple[str, str]] = []
         if self.height_range is not None:
             rows.append(("heights", f"{self.height_range[0]:.1f} .. {self.height_range[1]:.1f} m (ellipsoidal)"))
         if self.grid:
@@ -203,12 +222,7 @@ class Plan:
             rows.append(("tasks", f"{self.tasks:,} in the dask graph"))
         if self.memory is not None:
             rows.append(("memory", self.memory.text()))
-        rows.append(("reuse", self.reuse))
-        rows += [("notes" if k == 0 else "", n) for k, n in enumerate(self.notes)]
-        rows += [("warnings" if k == 0 else "", w) for k, w in enumerate(self.warnings)] or [("warnings", "none")]
-        width = max(len(k) for k, _ in rows)
-        head = f"plan of tiledsm {self.command} (nothing computed, nothing written)"
-        return "\n".join([head] + [f"  {k:<{width}}  {v}" for k, v in rows])
+        return rows
 
 
 # --------------------------------------------------------------------------- generic checks

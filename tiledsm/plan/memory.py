@@ -221,7 +221,8 @@ def _largest_task(chunks: Sequence[int], params) -> int:
     return best
 
 
-def dsm_levels(views, grid, h_range: tuple[float, float], levels: int, params) -> tuple[list[LevelPlan], MemoryEstimate]:
+def dsm_levels(views, grid, h_range: tuple[float, float], levels: int, params,
+               itemsize: int | None = None) -> tuple[list[LevelPlan], MemoryEstimate]:
     """Sizes of every pyramid level of a DSM run and the worker memory of
     its largest task.
 
@@ -231,6 +232,9 @@ def dsm_levels(views, grid, h_range: tuple[float, float], levels: int, params) -
     ``2 ceil(hole_factor * refine_steps) + 1`` (its width under a coarse
     hole). The image window is that of a task at the grid centre over the
     whole height range (an upper bound for finer levels).
+
+    ``itemsize`` (bytes per image pixel) is read from the views' files
+    unless given (views of a synthetic scene not made yet).
 
     Returns
     -------
@@ -243,10 +247,11 @@ def dsm_levels(views, grid, h_range: tuple[float, float], levels: int, params) -
     from tiledsm.dsm import level_geometry, level_layout
     from tiledsm.geometry.footprint import image_window
 
-    itemsize = 1
-    for v in views:
-        with rasterio.open(v.path) as src:
-            itemsize = max(itemsize, np.dtype(src.dtypes[0]).itemsize)
+    if itemsize is None:
+        itemsize = 1
+        for v in views:
+            with rasterio.open(v.path) as src:
+                itemsize = max(itemsize, np.dtype(src.dtypes[0]).itemsize)
     span = float(h_range[1] - h_range[0])
     fine_band = 2 * math.ceil(params.search.hole_factor * params.refine_steps - 1e-9) + 1
     out: list[LevelPlan] = []

@@ -21,6 +21,13 @@ def plan_inputs(plan: Plan, recipe, cluster=None, *, overwrite: bool = False,
     plan their own grids when they run."""
     plan.notes.append(f"pipeline {recipe.pipeline}: each stage plans its grid, graph and memory when it runs")
     plan.reuse = "stores of an earlier run with the same fingerprint (checked by each stage)"
+    return check_recipe_inputs(plan, recipe)
+
+
+def check_recipe_inputs(plan: Plan, recipe) -> Plan:
+    """The checks of a recipe that need no stage to run: its input files
+    exist, SR weights exist for ``sr.scale``, a stable mask overlaps the
+    pre-event views."""
     for role, path in _recipe_files(recipe.model_dump(), ""):
         plan.inputs.append(InputInfo(role, existing_file(path, role)))
     sr = getattr(recipe, "sr", None)

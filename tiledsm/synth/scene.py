@@ -44,28 +44,25 @@ track; with 3 views, ``view_2`` is a near-nadir view between them (so the
 from __future__ import annotations
 
 import json
-import math
 import threading
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from tiledsm.geometry.grid import GroundGrid, utm_crs
+from tiledsm.geometry.grid import GroundGrid
 from tiledsm.geometry.pushbroom import PushbroomCamera
-from tiledsm.synth.event import EventParams, PostEventWorld, evaluate_post
+from tiledsm.synth.event import EventParams, evaluate_post
+from tiledsm.synth.layout import DEFAULT_ROLLS, fit_view, scene_layout, view_pitches  # noqa: F401  (re-exported)
 from tiledsm.synth.render import RadiometryParams, render_window
-from tiledsm.synth.terrain import TerrainParams, World, make_world
+from tiledsm.synth.terrain import TerrainParams, World
 from tiledsm.synth.texture import TextureParams
-from tiledsm.synth.tower import Tower, TowerParams, place_tower
+from tiledsm.synth.tower import Tower, TowerParams
 from tiledsm.synth.visibility import VisibilityParams, visibility_window
 
 __all__ = ["SceneInfo", "make_scene", "view_pitches"]
 
-#: default roll angles of views 0, 1, 2, degrees (small, different: the
-#: epipolar geometry is not trivially aligned with the image axes)
-DEFAULT_ROLLS = (1.0, -0.5, 0.3)
 
 
 @dataclass(frozen=True)
@@ -144,13 +141,6 @@ class SceneInfo:
         """``(row0, row1, col0, col1)``: half-open truth-grid cell ranges of
         the tower's roof (its footprint exactly), or None without a tower."""
         return None if self.tower is None else self.tower.window
-
-
-def view_pitches(bh: float, views: int) -> tuple[float, ...]:
-    """Along-track incidences (degrees) of the views for a B/H of ``bh``."""
-    t = 0.5 * float(bh)
-    tans = (-t, t) if views == 2 else (-t, t, 0.0)
-    return tuple(math.degrees(math.atan(v)) for v in tans)
 
 
 # ------------------------------------------------------------------ writing
@@ -281,22 +271,6 @@ def _visibility_array(ground, cameras, grid, origin, h_range, params, radiometry
 
 
 # ------------------------------------------------------------------ geometry
-def _fit_view(camera: PushbroomCamera, h_range, view: int):
-    from tiledsm.geometry.fit import fit_rpc_report
-
-    r = np.array([0, 0, camera.rows, camera.rows] * 2, float)
-    c = np.array([0, camera.cols, 0, camera.cols] * 2, float)
-    h = np.repeat(np.asarray(h_range, float), 4)
-    lon, lat = camera.localize(r, c, h)
-    dlon = 0.02 * (lon.max() - lon.min())
-    dlat = 0.02 * (lat.max() - lat.min())
-    rpc, report = fit_rpc_report(
-        camera.project, (lon.min() - dlon, lon.max() + dlon), (lat.min() - dlat, lat.max() + dlat),
-        tuple(h_range), (camera.rows, camera.cols), source=f"synthetic pushbroom view_{view}",
-    )
-    return rpc, report
-
-
 def measured_parallax(rpc, crs: str, row: float, col: float, h: float, dh: float = 50.0) -> np.ndarray:
     """Horizontal shift (east, north; metres) of the ground point seen by
     pixel ``(row, col)`` per metre of height, measured by localising it with
@@ -370,8 +344,6 @@ def make_scene(
     -------
     SceneInfo
     """
-    from pyproj import Transformer
-
     from tiledsm.errors import TiledsmError
 
     if views not in (2, 3):
@@ -386,35 +358,15 @@ def make_scene(
     out.mkdir(parents=True, exist_ok=True)
     radiometry = radiometry or RadiometryParams()
     visibility = visibility or VisibilityParams()
-    world = make_world(seed, gsd, terrain, texture)
-    crs = utm_crs(*center)
-    e0, n0 = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(*center)
-    origin = (float(round(e0)), float(round(n0)))
-    extent = size * gsd
-    grid = GroundGrid(crs, origin[0] - extent / 2, origin[1] + extent / 2, gsd, size, size, chunk)
-    if tower is not None:
-        world = replace(world, tower=place_tower(world, tower, grid, origin))
-    ev = None
-    ground_post = None
-    if event:
-        ev = event_params or EventParams.for_extent(extent)
-        ground_post = PostEventWorld(world, ev)
-    margin = 0.3 * extent + 300.0
-    box = (-extent / 2 - margin, extent / 2 + margin, -extent / 2 - margin, extent / 2 + margin)
-    h_range = world.height_bounds(*box)
-    if ground_post is not None:
-        lo, hi = ground_post.height_bounds(*box)
-        h_range = (min(lo, h_range[0]), max(hi, h_range[1]))
-    h0 = float(world.relief.points(0.0, 0.0) + world.terrain.base_height)
-    cameras = tuple(
-        PushbroomCamera(crs, origin[0], origin[1], h0, size, size, gsd, pitch_deg=p,
-                        roll_deg=rolls_deg[i % len(rolls_deg)], azimuth_deg=azimuth_deg, altitude=altitude)
-        for i, p in enumerate(view_pitches(bh, views))
-    )
+    lay = scene_layout(size, gsd, bh, seed, views, event, chunk, center=center, azimuth_deg=azimuth_deg,
+                       rolls_deg=rolls_deg, altitude=altitude, terrain=terrain, texture=texture,
+                       event_params=event_params, tower=tower)
+    world, crs, origin, grid, ev, ground_post = lay.world, lay.grid.crs, lay.origin, lay.grid, lay.event, lay.post_world
+    h_range, h0, cameras = lay.height_range, lay.h0, lay.cameras
     timings["world_and_cameras"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    fits = [_fit_view(cam, h_range, i) for i, cam in enumerate(cameras)]
+    fits = [fit_view(cam, h_range, i) for i, cam in enumerate(cameras)]
     rpcs = tuple(f[0] for f in fits)
     timings["rpc_fit"] = time.perf_counter() - t1
     par = [measured_parallax(r, crs, size / 2, size / 2, h0) for r in rpcs]
@@ -438,14 +390,9 @@ def make_scene(
             items.append((arr.astype(dtype), out / fname, raster_profile(dtype, (size, size), grid=grid)))
     mask_profile = raster_profile(np.uint8, (size, size), grid=grid)
 
-    post_cameras, post_rpcs = cameras, rpcs
-    if ev is not None and (any(ev.post_aim_offset) or ev.post_bh is not None):
-        # another acquisition: aimed elsewhere and/or with its own base, so its pixels and its
-        # disparities sample the ground at other sub-pixel phases (own RPCs)
-        ox, oy = ev.post_aim_offset
-        pitches = view_pitches(ev.post_bh, views) if ev.post_bh is not None else [c.pitch_deg for c in cameras]
-        post_cameras = tuple(replace(c, e0=c.e0 + ox, n0=c.n0 + oy, pitch_deg=p) for c, p in zip(cameras, pitches))
-        post_rpcs = tuple(_fit_view(c, h_range, 100 + i)[0] for i, c in enumerate(post_cameras))
+    post_cameras, post_rpcs = lay.post_cameras, rpcs
+    if post_cameras is not cameras:
+        post_rpcs = tuple(fit_view(c, h_range, 100 + i)[0] for i, c in enumerate(post_cameras))
 
     def masks(ground, prefix, cams=cameras):
         vis = _visibility_array(ground, cams, grid, origin, h_range, visibility, radiometry)

@@ -70,16 +70,9 @@ from tiledsm.errors import NoOverlapError, TiledsmError
 from tiledsm.orient.spec import OrientSpec
 from tiledsm.recipes import ClusterSpec, GridSpec, MatchSpec, OutputSpec, SynthInput, StrictModel
 from tiledsm.workflows.displacement import DisplacementSpec
-from tiledsm.workflows.fault import (
-    Fault,
-    error_stats,
-    event_exclusion_polygons,
-    expected_coregistration,
-    throw_across,
-    write_geojson,
-)
+from tiledsm.workflows.fault import Fault, event_exclusion_polygons, write_geojson
 
-__all__ = ["DeformationRecipe", "run_deformation"]
+__all__ = ["DeformationRecipe", "plan_deformation", "run_deformation"]
 
 log = logging.getLogger("tiledsm.workflows.deformation")
 
@@ -232,42 +225,6 @@ class DeformationRecipe(StrictModel):
 
 
 
-# --------------------------------------------------------------------------- truth metrics
-def _on_grid(path, like, *, nearest: bool = False) -> np.ndarray:
-    """A raster's values on the grid of ``like`` (float64)."""
-    from tiledsm.workflows.common import reference_on_grid
-
-    return np.asarray(reference_on_grid(path, like, "nearest" if nearest else "bilinear").values, np.float64)
-
-
-def _synthetic_truth(scene, like, coreg_expected: dict):
-    """Truth ``dh`` in the co-registration frame and the evaluation masks.
-
-    Returns ``(truth_dh, visible, visible_ground)`` on the grid of ``like``.
-    """
-    from tiledsm.compare.coreg import shift_array
-
-    ev = scene.event
-    dy_px, dx_px, dz = coreg_expected["dy_px"], coreg_expected["dx_px"], coreg_expected["dz"]
-    pre = _on_grid(scene.truth_dsm, like)
-    post = _on_grid(ev["post_dsm"], like)
-    vis = _on_grid(scene.visible_mask, like, nearest=True) > 0.5
-    pvis = _on_grid(ev["post_visible"], like, nearest=True)
-    lab = _on_grid(scene.truth_label, like, nearest=True)
-    plab = _on_grid(ev["post_label"], like, nearest=True)
-    if dx_px or dy_px:
-        post = shift_array(post, dy_px, dx_px, "cubic").astype(np.float64)
-        # masks: linear weights; a cell counts only when all its support does
-        pvis = shift_array(pvis, dy_px, dx_px, "linear")
-        plab = shift_array((plab == 0).astype(np.float32), dy_px, dx_px, "linear")
-        pground = plab > 0.999
-    else:
-        pground = plab == 0
-    truth = post + dz - pre
-    visible = vis & (np.nan_to_num(pvis) > 0.999) & np.isfinite(truth)
-    return truth, visible, visible & (lab == 0) & pground
-
-
 # --------------------------------------------------------------------------- runner
 def _grid_lonlat_box(grid) -> tuple[float, float, float, float]:
     from pyproj import Transformer
@@ -297,12 +254,6 @@ def _check_post_sees_grid(images, rpcs, h_range, grid, pre_images) -> None:
             f"(pre-event views {', '.join(map(str, pre_images))}): post footprint lon/lat "
             f"[{lon0:.5f}, {lat0:.5f}, {lon1:.5f}, {lat1:.5f}], pre grid [{g0:.5f}, {g1:.5f}, {g2:.5f}, {g3:.5f}]"
         )
-
-
-def _dsm_params(recipe: DeformationRecipe):
-    from tiledsm.recipes import dsm_params
-
-    return dsm_params(recipe.grid, recipe.match)
 
 
 def _fault_from_trace(spec: FaultSpec, crs: str) -> Fault:
@@ -342,10 +293,102 @@ def _orient_summary(rep: dict) -> dict:
     return {**{k: rep[k] for k in keys if k in rep}, "terms": {Path(d["image"]).name: d["terms"] for d in rep["images"]}}
 
 
-def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrite: bool = False) -> dict:
+# --------------------------------------------------------------------------- the DSM of each epoch
+def _event_params(sy: EventSynthInput):
+    from tiledsm.synth import EventParams
+
+    return EventParams.for_extent(sy.size * sy.gsd, still=sy.still, post_aim_offset=tuple(sy.post_aim_offset),
+                                  post_bh=sy.post_bh)
+
+
+def _epoch_recipe(recipe: DeformationRecipe, epoch: str, images, rpcs, grid: GridSpec):
+    """The ``pipeline: dsm`` recipe of one epoch (its own folder ``OUT/<epoch>``)."""
+    from tiledsm.workflows.stage_dsm import dsm_recipe
+
+    return dsm_recipe(f"{recipe.name}-{epoch}", images, rpcs, grid, recipe.match, recipe.output, recipe.cluster)
+
+
+def _rpc_height_range(images, rpcs) -> tuple[float, float]:
+    """The heights the pair's cameras are valid for (RPC offset +- scale), metres."""
+    from tiledsm.dsm import open_views
+
+    r = open_views(images, rpcs)[0].rpc
+    return (r.height_off - r.height_scale, r.height_off + r.height_scale)
+
+
+def _plan_epochs(recipe: DeformationRecipe, out: Path, pre_in, post_in, pre_grid: GridSpec, cluster,
+                 overwrite: bool, limits) -> list[tuple[str, object, object]]:
+    """``[(epoch, dsm recipe, plan)]`` of both DSMs, the post one on the pre
+    one's grid (a post pair that sees none of it is refused first)."""
+    from tiledsm.workflows.stage_dsm import grid_spec, plan_stage_dsm
+
+    pre = _epoch_recipe(recipe, "pre", *pre_in, pre_grid)
+    pre_plan = plan_stage_dsm(pre, out / "pre", cluster, overwrite=overwrite, limits=limits)
+    grid = pre_plan.prepared.grid
+    _check_post_sees_grid(post_in[0], post_in[1], _rpc_height_range(*post_in), grid, pre_in[0])
+    post = _epoch_recipe(recipe, "post", *post_in, grid_spec(grid))
+    post_plan = plan_stage_dsm(post, out / "post", cluster, overwrite=overwrite, limits=limits)
+    epochs = [("pre", pre, pre_plan), ("post", post, post_plan)]
+    for _, sub, p in epochs:
+        p.recipe = p.recipe or sub  # what the run computes (a reused plan carries it)
+    return [(name, p.recipe, p) for name, _, p in epochs]
+
+
+def plan_deformation(plan, recipe: DeformationRecipe, cluster=None, *, overwrite: bool = False, names=None):
+    """Fill ``plan`` (:func:`tiledsm.plan.plan_recipe`) for a deformation
+    recipe: the recipe's input files, then the DSM stage's plan of each
+    epoch into ``OUT/pre`` and ``OUT/post`` (grid, chunks, levels, worker
+    memory; :attr:`Plan.stages`). A synthetic event is planned from its
+    parameters (:func:`tiledsm.workflows.stage_dsm.plan_unmade_dsm`);
+    with ``orient:`` the DSMs are planned on the given images (the run
+    plans them again on the corrected ones)."""
+    from tiledsm.plan.recipes import check_recipe_inputs
+    from tiledsm.workflows.stage_dsm import (
+        SYNTH_ITEMSIZE, add_stages, grid_spec, plan_unmade_dsm, scene_heights, synthetic_views,
+    )
+
+    check_recipe_inputs(plan, recipe)
+    out, inp = plan.out, recipe.input
+    if inp.synth is not None:
+        from tiledsm.synth.layout import scene_layout
+
+        sy = inp.synth
+        lay = scene_layout(sy.size, sy.gsd, sy.bh, sy.seed, sy.views, True, event_params=_event_params(sy))
+        scene = out / "scene"
+        pre_paths = [scene / f"view_{i}.tif" for i in range(sy.views)]
+        post_paths = [scene / f"post_view_{i}.tif" for i in range(sy.views)]
+        h_range = scene_heights(lay, recipe.match)
+        pre = _epoch_recipe(recipe, "pre", pre_paths, None, recipe.grid)
+        pre_plan, grid = plan_unmade_dsm(out / "pre", synthetic_views(lay, lay.cameras, pre_paths), h_range, pre,
+                                         itemsize=SYNTH_ITEMSIZE, default_grid=lay.grid, limits=plan.limits)
+        post = _epoch_recipe(recipe, "post", post_paths, None, grid_spec(grid))
+        post_plan, _ = plan_unmade_dsm(out / "post", synthetic_views(lay, lay.post_cameras, post_paths, first_view=100),
+                                       h_range, post, itemsize=SYNTH_ITEMSIZE, limits=plan.limits)
+        plan.notes.append(f"synthetic event scene {sy.size}² px at {sy.gsd:g} m is made by the run in {scene}: the "
+                          "DSMs are planned from its parameters (truth grid, fitted cameras, terrain heights); their "
+                          "heights come from the scene's tie points once it is made")
+        stages = [("pre", pre_plan), ("post", post_plan)]
+    else:
+        epochs = _plan_epochs(recipe, out, (inp.pre.images, inp.pre.rpcs), (inp.post.images, inp.post.rpcs),
+                              recipe.grid, cluster, overwrite, plan.limits)
+        stages = [(name, p) for name, _, p in epochs]
+        if recipe.orient is not None:
+            plan.notes.append("orient: the DSMs are planned on the given images; the run plans them again on the "
+                              "bias-corrected copies")
+    return add_stages(plan, stages, "per DSM (above); compare/ is recomputed from the two DSMs")
+
+
+# --------------------------------------------------------------------------- runner
+def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrite: bool = False, plan=None) -> dict:
     """Pre and post pairs -> DSMs on one grid -> co-registered ``dh`` -> metrics.
 
-    See the module notes for the products and conventions.
+    Each DSM is made by the DSM stage (:mod:`tiledsm.workflows.stage_dsm`:
+    planned, memory-fitted, resumable) into ``out/pre`` and ``out/post``;
+    ``plan`` (:func:`plan_deformation`) carries both epochs' prepared DSMs
+    for given pairs, which are then not prepared twice. Completeness and
+    throw are dask reductions; the scores against a truth come from
+    :func:`tiledsm.evaluate.deformation.score`. See the module notes for
+    the products and conventions.
 
     Raises
     ------
@@ -355,42 +398,41 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
     NoStableTerrainError
         The exclusion polygons leave no stable terrain for the fit.
     """
+    import dask.array as da
+
     from tiledsm.cluster import compute_context, shared_cluster
     from tiledsm.compare import CompareParams, compare_dsms
-    from tiledsm.dsm import dsm_from_pair
-    from tiledsm.dsm.stages import LEVELS_DIR
-    from tiledsm.io.grids import grid_like
+    from tiledsm.evaluate.deformation import DeformationTruth, score
     from tiledsm.io import open_product
-    from tiledsm.workflows.common import write_dsm_products, write_json
-    from tiledsm.recipes import grid_from_spec
+    from tiledsm.plan.core import Limits
+    from tiledsm.workflows.common import write_json
+    from tiledsm.workflows.fault import strips_lazy, throw_of_strips
+    from tiledsm.workflows.stage_dsm import run_stage_dsm, stage_report
 
+    out = Path(out)
     cluster = cluster or recipe.cluster.config()
+    limits = plan.limits if plan is not None else Limits()
     t_start = time.perf_counter()
     timings: dict = {}
     inp, g = recipe.input, recipe.grid
     scene = None
-    grid = grid_from_spec(g)
+    pre_grid = g
     if inp.synth is not None:
         from tiledsm.synth import make_scene
 
         sy = inp.synth
         log.info("making synthetic event scene %s", sy.model_dump())
         t0 = time.perf_counter()
-        from tiledsm.synth import EventParams
-
         scene = make_scene(out / "scene", size=sy.size, gsd=sy.gsd, bh=sy.bh, seed=sy.seed, views=sy.views, event=True,
-                           event_params=EventParams.for_extent(sy.size * sy.gsd, still=sy.still,
-                                                              post_aim_offset=tuple(sy.post_aim_offset),
-                                                              post_bh=sy.post_bh))
+                           event_params=_event_params(sy))
         timings["scene_s"] = time.perf_counter() - t0
         pre_in = ([str(p) for p in scene.views], None)
         post_in = ([str(p) for p in scene.event["post_views"]], None)
         if not (g.like or g.bounds or g.resolution):
-            grid = grid_like(str(scene.truth_dsm), chunk=g.chunk)  # truth on the DSM grid, unresampled
+            pre_grid = GridSpec(like=str(scene.truth_dsm), chunk=g.chunk)  # truth on the DSM grid, unresampled
     else:
         pre_in = (inp.pre.images, inp.pre.rpcs)
         post_in = (inp.post.images, inp.post.rpcs)
-    params = _dsm_params(recipe)
 
     # ---- stable terrain (before orientation: its tie points must avoid the moved ground)
     stable_mask = recipe.compare.stable_mask
@@ -403,13 +445,14 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
         pre_in, post_in, orient_report = _orient_epochs(recipe.orient, pre_in, post_in, out, stable_mask, overwrite)
         timings["orient_s"] = time.perf_counter() - t0
 
-    # ---- both DSMs lazily, the post one on the pre grid; refuse a post pair off the grid before computing
-    ds_pre, rep_pre = dsm_from_pair(*pre_in[0], rpcs=pre_in[1], grid=grid, params=params,
-                                    stage_dir=out / "pre" / LEVELS_DIR)
-    grid = grid_like(ds_pre["height"], chunk=params.chunk)
-    ds_post, rep_post = dsm_from_pair(*post_in[0], rpcs=post_in[1], grid=grid, params=params,
-                                      stage_dir=out / "post" / LEVELS_DIR)
-    _check_post_sees_grid(post_in[0], post_in[1], rep_post["height_range_m"], grid, pre_in[0])
+    # ---- both DSMs planned by the DSM stage (the plan's, when it prepared them), the post one on the pre grid
+    planned = plan is not None and plan.stages and all(p.prepared is not None for _, p in plan.stages)
+    if planned and scene is None and recipe.orient is None:
+        epochs = [(name, p.recipe, p) for name, p in plan.stages]
+    else:
+        epochs = _plan_epochs(recipe, out, pre_in, post_in, pre_grid, cluster, overwrite, limits)
+    grid = epochs[0][2].prepared.grid
+    reports = {name: p.prepared.report for name, _, p in epochs}
 
     # ---- fault
     fault, strip = None, recipe.compare.strip
@@ -424,56 +467,49 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
     )
 
     # ---- compute, on one cluster for the three stages
+    dsm_metrics = {}
     with shared_cluster(cluster) as run_cluster:
-        for name, ds in (("pre", ds_pre), ("post", ds_post)):
+        for name, sub, p in epochs:
             log.info("%s-event DSM into %s", name, out / name)
             t0 = time.perf_counter()
-            write_dsm_products(ds, out / name, cluster=run_cluster, cog=recipe.output.cog,
-                               quicklook=recipe.output.quicklook, overwrite=overwrite)
+            dsm_metrics[name] = run_stage_dsm(p, sub, out / name, run_cluster, overwrite=overwrite)
             timings[f"dsm_{name}_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         with compute_context(run_cluster):
             res = compare_dsms(out / "pre" / "dsm.zarr", out / "post" / "dsm.zarr", out / "compare", cparams)
         timings["compare_s"] = time.perf_counter() - t0
 
-    # ---- metrics
-    cm = res.metrics
-    co = res.coregistration
-    metrics: dict = {
-        "pipeline": "deformation",
-        "dh_definition": "post_corrected - pre (m)",
-        "grid": rep_pre["grid"],
-        "pre": {"report": rep_pre},
-        "post": {"report": rep_post},
-        "coregistration": cm["coregistration"],
-        "stable_terrain": {**cm["stable_terrain"], "statistics": cm["statistics"]["stable"]},
-        "dh_statistics": cm["statistics"]["all"],
-        "products": {k: str(Path(v).relative_to(out)) for k, v in res.products.items()},
-    }
-    if orient_report is not None:
-        metrics["orient"] = orient_report
-    t0 = time.perf_counter()
-    dh_da = open_product(out / "compare" / "dh.zarr")["dh"]
-    dh = np.asarray(dh_da.values, np.float64)
-    metrics["completeness"] = float(np.isfinite(dh).mean())
-    distance = fault.signed_distance(dh_da.x.values, dh_da.y.values) if fault is not None else None
-    if fault is not None:
-        metrics["fault"] = {**fault.to_dict(), "strip_m": list(strip), "measured": throw_across(dh, distance, strip)}
-        if scene is not None:
-            metrics["fault"]["nominal_throw"] = float(scene.event["params"].throw)
-    if scene is not None:
-        metrics["truth"] = _truth_metrics(scene, dh_da, dh, co, stable_mask, distance, strip)
-    elif inp.truth_dh:
-        truth = _on_grid(inp.truth_dh, dh_da)
-        sel = np.isfinite(truth) & np.isfinite(dh)
-        if inp.truth_mask:
-            sel &= _on_grid(inp.truth_mask, dh_da, nearest=True) > 0.5
-        metrics["truth"] = {"source": inp.truth_dh, "dh_error": error_stats(dh[sel] - truth[sel])}
-        if fault is not None:
-            tt = throw_across(truth, distance, strip, sel)
-            mt = throw_across(dh, distance, strip, sel)
-            metrics["truth"]["throw"] = {"recovered": mt["throw"], "truth": tt["throw"], "error": mt["throw"] - tt["throw"]}
-    timings["metrics_s"] = time.perf_counter() - t0
+        # ---- metrics: dask reductions and the strips' cells; the grid never comes to this process
+        cm = res.metrics
+        metrics: dict = {
+            "pipeline": "deformation",
+            "dh_definition": "post_corrected - pre (m)",
+            "grid": reports["pre"]["grid"],
+            **{name: {"report": reports[name], "dsm": stage_report(dsm_metrics[name])} for name in reports},
+            "coregistration": cm["coregistration"],
+            "stable_terrain": {**cm["stable_terrain"], "statistics": cm["statistics"]["stable"]},
+            "dh_statistics": cm["statistics"]["all"],
+            "products": {k: str(Path(v).relative_to(out)) for k, v in res.products.items()},
+        }
+        if orient_report is not None:
+            metrics["orient"] = orient_report
+        t0 = time.perf_counter()
+        with compute_context(run_cluster):
+            dh = open_product(out / "compare" / "dh.zarr")["dh"]
+            metrics["completeness"] = float(da.isfinite(dh.data).mean().compute())
+            if fault is not None:
+                measured = throw_of_strips(*strips_lazy(dh, fault, strip), strip)
+                metrics["fault"] = {**fault.to_dict(), "strip_m": list(strip), "measured": measured}
+                if scene is not None:
+                    metrics["fault"]["nominal_throw"] = float(scene.event["params"].throw)
+            truth = None
+            if scene is not None:
+                truth = DeformationTruth(scene=scene, stable_mask=stable_mask, fault=fault, strip=strip)
+            elif inp.truth_dh:
+                truth = DeformationTruth(dh=inp.truth_dh, mask=inp.truth_mask, fault=fault, strip=strip)
+            if truth is not None:
+                metrics["truth"] = score(out, truth)
+        timings["metrics_s"] = time.perf_counter() - t0
     if recipe.displacement is not None:
         from tiledsm.workflows.displacement import run_displacement
 
@@ -489,41 +525,3 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
     write_json(metrics, out / "metrics.json")
     log.info("metrics: %s", json.dumps(metrics, default=float))
     return metrics
-
-
-def _truth_metrics(scene, dh_da, dh, co, stable_mask, distance, strip) -> dict:
-    """Errors of the recovered ``dh`` against the synthetic truth, in the
-    frame of the stable terrain (module notes)."""
-    from tiledsm.compare.stable import exclusion_mask, read_polygons
-
-    ev = scene.event
-    res = float(dh_da.rio.transform().a)
-    if co.method == "none":
-        expected = {"dx_px": 0.0, "dy_px": 0.0, "dz": 0.0, "n_cells": 0}
-    else:
-        crs = dh_da.rio.crs
-        geoms = read_polygons(stable_mask, crs) if stable_mask else []
-        stable = ~exclusion_mask(geoms, dh_da.rio.transform(), dh.shape) & np.isfinite(dh)
-        expected = expected_coregistration(
-            stable, _on_grid(ev["dx"], dh_da), _on_grid(ev["dy"], dh_da), _on_grid(ev["dz"], dh_da), res
-        )
-    truth, visible, ground = _synthetic_truth(scene, dh_da, expected)
-    ok = np.isfinite(dh)
-    out = {
-        "frame": "plain truth dh" if not (expected["dx_px"] or expected["dy_px"] or expected["dz"])
-        else "truth dh in the frame of the stable terrain (expected co-registration applied to the post truth)",
-        "coregistration_expected": expected,
-        "coregistration_error": {
-            "dx_px": co.dx_px - expected["dx_px"], "dy_px": co.dy_px - expected["dy_px"], "dz": co.dz - expected["dz"],
-        },
-        "dh_error_visible_ground": error_stats((dh - truth)[ok & ground]),
-        "dh_error_visible": error_stats((dh - truth)[ok & visible]),
-        "completeness_visible_ground": float((ok & ground).sum() / max(ground.sum(), 1)),
-    }
-    if distance is not None:
-        sel = ok & ground
-        mt = throw_across(dh, distance, strip, sel)
-        tt = throw_across(truth, distance, strip, sel)
-        out["throw"] = {"recovered": mt["throw"], "truth": tt["throw"], "error": mt["throw"] - tt["throw"],
-                        "nominal": float(ev["params"].throw), "cells": [mt["n_left"], mt["n_right"]]}
-    return out

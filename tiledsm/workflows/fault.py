@@ -18,7 +18,7 @@ import numpy as np
 
 from tiledsm.errors import TiledsmError
 
-__all__ = ["Fault", "throw_across", "error_stats", "event_exclusion_polygons", "write_geojson", "expected_coregistration"]
+__all__ = ["Fault", "throw_across", "strip_values", "throw_of_strips", "strips_lazy", "error_stats", "event_exclusion_polygons", "write_geojson", "expected_coregistration"]
 
 
 class Fault:
@@ -50,6 +50,27 @@ class Fault:
         return {"point": self.point.tolist(), "strike": self.strike.tolist(), "normal_right": self.normal.tolist()}
 
 
+def strip_values(dh: np.ndarray, distance: np.ndarray, strip: tuple[float, float],
+                 valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Valid ``dh`` values (float64) of the right and of the left strip
+    (``strip[0] <= |distance| <= strip[1]`` metres; see :func:`throw_across`)."""
+    ok = np.isfinite(dh) if valid is None else (np.asarray(valid, bool) & np.isfinite(dh))
+    a = np.abs(distance)
+    band = ok & (a >= strip[0]) & (a <= strip[1])
+    return (np.asarray(dh[band & (distance > 0)], np.float64), np.asarray(dh[band & (distance < 0)], np.float64))
+
+
+def throw_of_strips(right: np.ndarray, left: np.ndarray, strip: tuple[float, float]) -> dict:
+    """:func:`throw_across` from the strips' values (:func:`strip_values`)."""
+    if not right.size or not left.size:
+        raise TiledsmError(
+            f"throw: no valid dh in the strips {strip[0]}-{strip[1]} m on the "
+            f"{'right' if not right.size else 'left'} of the fault trace (does the trace cross the grid?)"
+        )
+    r, l_ = float(np.median(right)), float(np.median(left))
+    return {"throw": r - l_, "right": r, "left": l_, "n_right": int(right.size), "n_left": int(left.size)}
+
+
 def throw_across(dh: np.ndarray, distance: np.ndarray, strip: tuple[float, float], valid: np.ndarray | None = None) -> dict:
     """Robust vertical offset across a fault trace.
 
@@ -70,17 +91,49 @@ def throw_across(dh: np.ndarray, distance: np.ndarray, strip: tuple[float, float
         ``throw`` (median right minus median left, metres), ``right``,
         ``left`` (the medians) and ``n_right``, ``n_left`` (cells used).
     """
-    ok = np.isfinite(dh) if valid is None else (np.asarray(valid, bool) & np.isfinite(dh))
-    a = np.abs(distance)
-    band = ok & (a >= strip[0]) & (a <= strip[1])
-    right, left = band & (distance > 0), band & (distance < 0)
-    if not right.any() or not left.any():
-        raise TiledsmError(
-            f"throw: no valid dh in the strips {strip[0]}-{strip[1]} m on the "
-            f"{'right' if not right.any() else 'left'} of the fault trace (does the trace cross the grid?)"
-        )
-    r, l_ = float(np.median(dh[right])), float(np.median(dh[left]))
-    return {"throw": r - l_, "right": r, "left": l_, "n_right": int(right.sum()), "n_left": int(left.sum())}
+    return throw_of_strips(*strip_values(dh, distance, strip, valid), strip)
+
+
+def _block_strips(dh, valid, x, y, fault: "Fault", strip):
+    return strip_values(dh, fault.signed_distance(x, y), strip, valid)
+
+
+def strips_lazy(dh, fault: Fault, strip: tuple[float, float], valid=None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`strip_values` of a dask-backed ``(y, x)`` DataArray, block by
+    block: each task computes its cells' signed distances and returns the
+    few values in its strips, so the client holds the strips' cells only
+    (a scene's length times the strips' width), never the grid.
+
+    ``valid``: a dask array of bool with the chunks of ``dh``, or None.
+    """
+    import dask
+
+    data = dh.data
+    x, y = np.asarray(dh.x.values, np.float64), np.asarray(dh.y.values, np.float64)
+    r_edges, c_edges = np.cumsum((0,) + data.chunks[0]), np.cumsum((0,) + data.chunks[1])
+    blocks = data.to_delayed()
+    keep = valid.to_delayed() if valid is not None else None
+    parts = []
+    for i in range(blocks.shape[0]):
+        for j in range(blocks.shape[1]):
+            if not (np.abs(fault.signed_distance(x[c_edges[j]:c_edges[j + 1]][[0, -1]],
+                                                  y[r_edges[i]:r_edges[i + 1]][[0, -1]])).min() <= strip[1]
+                    or _crosses(fault, x[c_edges[j]:c_edges[j + 1]], y[r_edges[i]:r_edges[i + 1]])):
+                continue  # the whole block lies beyond the outer strip
+            parts.append(dask.delayed(_block_strips)(blocks[i, j], None if keep is None else keep[i, j],
+                                                     x[c_edges[j]:c_edges[j + 1]], y[r_edges[i]:r_edges[i + 1]],
+                                                     fault, strip))
+    found = dask.compute(*parts)
+    right = np.concatenate([f[0] for f in found]) if found else np.empty(0)
+    left = np.concatenate([f[1] for f in found]) if found else np.empty(0)
+    return right, left
+
+
+def _crosses(fault: Fault, x: np.ndarray, y: np.ndarray) -> bool:
+    """Whether the trace passes between a block's corner cells (signed
+    distances of both signs)."""
+    d = fault.signed_distance(x[[0, -1]], y[[0, -1]])
+    return bool(d.min() <= 0 <= d.max())
 
 
 def error_stats(err: np.ndarray) -> dict:

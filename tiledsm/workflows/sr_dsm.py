@@ -80,9 +80,7 @@ from tiledsm.recipes import (
     StrictModel,
 )
 from tiledsm.synth.degrade import gaussian_sigma
-from tiledsm.workflows.sr_scores import (
-    RegionRule, SRDSMError, compare_by_region, compare_on_common, image_quality, markdown_report, regions_from_truth,
-)
+from tiledsm.workflows.sr_scores import SRDSMError, markdown_report
 
 log = logging.getLogger("tiledsm")
 
@@ -203,6 +201,24 @@ def _linear_weights(src: np.ndarray, dst: np.ndarray) -> "sparse.csr_matrix":
     return sparse.csr_matrix((vals, (rows, cols)), shape=(dst.size, n))
 
 
+def _upsample_block(src: np.ndarray, ay, ax, min_weight: float) -> np.ndarray:
+    """Bilinear weights ``ay`` (rows) and ``ax`` (columns) applied to the
+    source window ``src`` with :func:`upsample_dsm`'s hole rule (float32)."""
+    src = np.asarray(src, np.float64)
+    valid = np.isfinite(src)
+    num = (ax @ (ay @ np.where(valid, src, 0.0)).T).T
+    den = (ax @ (ay @ valid.astype(np.float64)).T).T
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den >= min_weight - 1e-9, num / den, np.nan).astype(np.float32)
+
+
+def _support(weights, start: int, stop: int) -> tuple[int, int]:
+    """Source index range ``[i0, i1)`` that rows ``start:stop`` of a
+    :func:`_linear_weights` matrix read."""
+    cols = weights[start:stop].indices
+    return int(cols.min()), int(cols.max()) + 1
+
+
 def upsample_dsm(height: xr.DataArray, grid: GroundGrid, min_weight: float = 0.5) -> xr.DataArray:
     """Bilinear interpolation of a DSM at the cell centres of ``grid``.
 
@@ -210,7 +226,7 @@ def upsample_dsm(height: xr.DataArray, grid: GroundGrid, min_weight: float = 0.5
     ----------
     height : xarray.DataArray
         DSM (metres), dims ``(y, x)`` with cell-centre coordinates, NaN =
-        no height; e.g. on :func:`lr_grid` of ``grid``.
+        no height; e.g. on :func:`lr_grid` of ``grid``. Dask-backed or not.
     grid : GroundGrid
         Target grid (same CRS).
     min_weight : float
@@ -224,56 +240,69 @@ def upsample_dsm(height: xr.DataArray, grid: GroundGrid, min_weight: float = 0.5
     Returns
     -------
     xarray.DataArray
-        float32 heights on ``grid`` (CRS and transform written). Target
-        centres beyond the outer source centres (half a source cell at the
-        edges) are extrapolated linearly.
+        float32 heights on ``grid`` (CRS and transform written), lazy in
+        ``grid.chunk`` blocks, each reading only the source cells under it
+        (the same values as the whole grid at once). Target centres beyond
+        the outer source centres (half a source cell at the edges) are
+        extrapolated linearly.
     """
+    import dask
+    import dask.array as da
     import rioxarray  # noqa: F401  (registers .rio)
 
-    src = np.asarray(height.values, np.float64)
-    valid = np.isfinite(src)
+    src = height.data if isinstance(height.data, da.Array) else da.from_array(np.asarray(height.values))
     ay = _linear_weights(np.asarray(height.y.values, np.float64), grid.y)
     ax = _linear_weights(np.asarray(height.x.values, np.float64), grid.x)
-    num = (ax @ (ay @ np.where(valid, src, 0.0)).T).T
-    den = (ax @ (ay @ valid.astype(np.float64)).T).T
-    with np.errstate(invalid="ignore", divide="ignore"):
-        values = np.where(den >= min_weight - 1e-9, num / den, np.nan)
-    out = xr.DataArray(values.astype(np.float32), dims=("y", "x"), coords={"y": grid.y, "x": grid.x}, name=height.name)
+    rows, cols = grid.chunks
+    r_edges, c_edges = np.cumsum((0,) + tuple(rows)), np.cumsum((0,) + tuple(cols))
+    blocks = []
+    for r0, r1 in zip(r_edges[:-1], r_edges[1:]):
+        i0, i1 = _support(ay, r0, r1)
+        line = []
+        for c0, c1 in zip(c_edges[:-1], c_edges[1:]):
+            j0, j1 = _support(ax, c0, c1)
+            block = dask.delayed(_upsample_block)(src[i0:i1, j0:j1], ay[r0:r1, i0:i1], ax[c0:c1, j0:j1], min_weight)
+            line.append(da.from_delayed(block, (int(r1 - r0), int(c1 - c0)), dtype=np.float32))
+        blocks.append(line)
+    out = xr.DataArray(da.block(blocks), dims=("y", "x"), coords={"y": grid.y, "x": grid.x}, name=height.name)
     out.attrs = {k: v for k, v in height.attrs.items() if k in ("units", "long_name")}
     return out.rio.write_crs(grid.crs).rio.write_transform(grid.transform)
 
 
 # ----------------------------------------------------------------- stages
-def _dsm_params(recipe: SRDSMRecipe, grid: GroundGrid | None):
-    from tiledsm.recipes import dsm_params
+def _dsm_recipe(recipe: SRDSMRecipe, views, grid: GroundGrid | None, folder: Path):
+    """The ``pipeline: dsm`` recipe of one DSM of the run: on ``grid``, else
+    on the recipe's grid (the HR DSM's default one)."""
+    from tiledsm.workflows.stage_dsm import dsm_recipe, grid_spec
 
-    if grid is None:
-        return dsm_params(recipe.grid, recipe.match)
-    return dsm_params(recipe.grid, recipe.match, resolution=grid.resolution, chunk=max(32, grid.chunk // 2 * 2))
+    spec = recipe.grid if grid is None else grid_spec(grid, chunk=max(32, grid.chunk // 2 * 2))
+    return dsm_recipe(f"{recipe.name}-{folder.name}", views, None, spec, recipe.match, recipe.output, recipe.cluster)
 
 
-def _make_dsm(views, grid, recipe, folder: Path, cluster: ClusterConfig, overwrite: bool) -> tuple[xr.DataArray, dict]:
-    """DSM of ``views`` on ``grid`` into ``folder`` (products); returns the stored height and a report."""
-    from tiledsm.dsm import dsm_from_pair
-    from tiledsm.dsm.stages import LEVELS_DIR
+def _make_dsm(views, grid, recipe, folder: Path, cluster: ClusterConfig, overwrite: bool, *,
+              plan_cluster=None, limits=None) -> tuple[xr.DataArray, dict, GroundGrid]:
+    """DSM of ``views`` on ``grid`` into ``folder`` by the DSM stage
+    (:mod:`tiledsm.workflows.stage_dsm`: planned, memory-fitted, resumable);
+    returns the stored height, a report and the grid it lies on."""
     from tiledsm.io import open_product
-    from tiledsm.workflows.common import write_dsm_products
+    from tiledsm.plan.core import Limits
+    from tiledsm.workflows.stage_dsm import plan_stage_dsm, run_stage_dsm, stage_report
 
     t0 = time.perf_counter()
-    ds, report = dsm_from_pair(*[str(v) for v in views], grid=grid, params=_dsm_params(recipe, grid),
-                               stage_dir=folder / LEVELS_DIR)
-    timings = write_dsm_products(ds, folder, cluster=cluster, cog=recipe.output.cog,
-                                 quicklook=recipe.output.quicklook, overwrite=overwrite)
-    timings["total_s"] = time.perf_counter() - t0
-    report = {"height_range_m": report.get("height_range_m"), "grid": report.get("grid"), "timings": timings}
-    return open_product(folder / "dsm.zarr")["height"], report
+    sub = _dsm_recipe(recipe, views, grid, folder)
+    plan = plan_stage_dsm(sub, folder, plan_cluster, overwrite=overwrite, limits=limits or Limits())
+    metrics = run_stage_dsm(plan, sub, folder, cluster, overwrite=overwrite)
+    report = stage_report(metrics)
+    report["timings"] = {**(report["timings"] or {}), "total_s": time.perf_counter() - t0}
+    return open_product(folder / "dsm.zarr")["height"], report, plan.prepared.grid
 
 
-def _read_band(path: Path) -> np.ndarray:
-    import rasterio
+def _open_band(path: Path, chunk: int):
+    """Band 1 of a raster as a dask array (float64, nodata -> NaN)."""
+    import rioxarray
 
-    with rasterio.open(path) as src:
-        return src.read(1, masked=True).astype(np.float64).filled(np.nan)
+    arr = rioxarray.open_rasterio(path, chunks={"band": 1, "y": chunk, "x": chunk}, masked=True)
+    return arr.isel(band=0).data.astype(np.float64)
 
 
 def _super_resolve_file(lr: Path, out: Path, model: str, sr: SRSpec, cluster: ClusterConfig) -> Path:
@@ -292,24 +321,6 @@ def _super_resolve_file(lr: Path, out: Path, model: str, sr: SRSpec, cluster: Cl
     with compute_context(cluster):
         write_geotiff_with_rpc(hr, out, scene_rpc(hr), nodata=float("nan"), dtype="float32", tags=tags)
     return out
-
-
-def _score_tables(hr: np.ndarray, methods: dict[str, np.ndarray], refs: dict) -> tuple[dict, dict]:
-    """Every table's statistics, each on its common cells.
-
-    ``vs_hr`` compares ``methods`` against the HR-pair DSM ``hr``; each key
-    of ``refs`` (``(reference, mask)``) compares the HR pair and ``methods``
-    against that reference. Returns ``(scores, common)``: ``scores[name][key]``
-    and ``common[key]`` (see :func:`compare_on_common`; heights in metres).
-    """
-    tables = {"vs_hr": compare_on_common(methods, hr)}
-    for key, (ref, mask) in refs.items():
-        tables[key] = compare_on_common({"hr": hr, **methods}, ref, mask)
-    scores: dict[str, dict] = {}
-    for key, table in tables.items():
-        for name, row in table["scores"].items():
-            scores.setdefault(name, {})[key] = row
-    return scores, {key: table["common"] for key, table in tables.items()}
 
 
 def _hr_pair(recipe: SRDSMRecipe, out: Path) -> tuple[list[Path], dict]:
@@ -346,23 +357,16 @@ def _target_grid(recipe: SRDSMRecipe, info: dict) -> GroundGrid | None:
     return grid_from_spec(g)
 
 
-def _write_blunder_map(heights: dict[str, np.ndarray], hr: np.ndarray, refs: dict, resolution: float, path: Path) -> Path:
-    """Blunder quick-look against the best reference there is: the truth
-    (visible ground), the given reference DSM, else the HR-pair DSM."""
-    from tiledsm.workflows.sr_figures import blunder_map
-
-    for key, title in (("vs_truth_visible", "against the truth, visible ground"), ("vs_reference", "against the reference DSM")):
-        if key in refs:
-            ref, mask = refs[key]
-            evaluated = np.ones(ref.shape, bool) if mask is None else mask
-            return blunder_map(heights, ref, evaluated, resolution, path, title)
-    return blunder_map({k: v for k, v in heights.items() if k != "hr"}, hr, np.ones(hr.shape, bool), resolution, path,
-                       "against the HR-pair DSM")
-
-
 # ----------------------------------------------------------------- runner
-def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = None, overwrite: bool = False) -> dict:
+def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = None, overwrite: bool = False,
+               plan=None) -> dict:
     """Run ``pipeline: sr_dsm`` into ``out`` (see the module docstring).
+
+    Each DSM is made by the DSM stage into its folder
+    (:mod:`tiledsm.workflows.stage_dsm`); image quality is reduced block by
+    block, the DSM tables are :func:`tiledsm.evaluate.sr_dsm.score`'s (on a
+    decimated grid beyond 768² cells): no grid-sized array comes to this
+    process.
 
     Returns the metrics written to ``out/metrics.json``: per method, the
     image quality (``image``: PSNR dB, SSIM, per view and mean) and the DSM
@@ -371,11 +375,16 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
     own completeness), the common cells of each table (``common``), timings
     in seconds.
     """
-    from tiledsm.workflows.common import reference_on_grid, write_json
+    from tiledsm.evaluate.sr_dsm import SRDSMTruth, score, write_blunder_map
+    from tiledsm.io import write_cog
+    from tiledsm.plan.core import Limits
     from tiledsm.synth.degrade import degrade
+    from tiledsm.workflows.common import write_json
+    from tiledsm.workflows.sr_scores import image_quality_lazy
 
     out = Path(out)
-    cluster = cluster or recipe.cluster.config()
+    plan_cluster = cluster = cluster or recipe.cluster.config()
+    limits = plan.limits if plan is not None else Limits()
     sr = recipe.sr
     s = sr.scale
     border = s if sr.border is None else sr.border
@@ -387,26 +396,24 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
         "pipeline": "sr_dsm", "name": recipe.name, "input": info["description"],
         "sr": {**sr.model_dump(), "border": border},
     }
+    truth = SRDSMTruth(truth=_str(info.get("truth")), visible=_str(info.get("visible")), label=_str(info.get("label")),
+                       reference=_str(info.get("reference")))
+    if truth.truth:
+        metrics["truth"] = truth.truth
+    if truth.reference:
+        metrics["reference"] = truth.reference
     with shared_cluster(cluster) as run_cluster:
+        def make_dsm(views, grid, folder):
+            return _make_dsm(views, grid, recipe, folder, run_cluster, overwrite, plan_cluster=plan_cluster,
+                             limits=limits)
+
         # 1. reference DSM from the HR pair, on G
         grid = _target_grid(recipe, info)
         log.info("sr_dsm: DSM of the HR pair")
         t0 = time.perf_counter()
-        hr_height, hr_report = _make_dsm(views, grid, recipe, out / "hr", run_cluster, overwrite)
+        _, hr_report, grid = make_dsm(views, grid, out / "hr")
         timings["hr"] = time.perf_counter() - t0
-        if grid is None:
-            grid = grid_like(hr_height, chunk=recipe.grid.chunk)
         metrics["grid"] = {"crs": grid.crs, "resolution": grid.resolution, "width": grid.width, "height": grid.height}
-        refs: dict = {}
-        if "truth" in info:
-            truth = reference_on_grid(info["truth"], hr_height)
-            visible = reference_on_grid(info["visible"], hr_height).values > 0.5
-            refs["vs_truth_visible"] = (truth.values, visible)
-            metrics["truth"] = str(info["truth"])
-            label = reference_on_grid(info["label"], hr_height, resampling="nearest").values
-        if "reference" in info:
-            refs["vs_reference"] = (reference_on_grid(info["reference"], hr_height).values, None)
-            metrics["reference"] = str(info["reference"])
         metrics["hr"] = {"dsm": hr_report}
         # 2. LR pair
         t0 = time.perf_counter()
@@ -418,46 +425,42 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
                                     noise=sr.lr_noise, seed=i, bits=sr.bit_depth))
         timings["lr"] = time.perf_counter() - t0
         # 3. methods
-        hr_images = [_read_band(v) for v in views]
         methods: dict[str, dict] = {}
-        method_heights: dict[str, np.ndarray] = {}
         for name in sr.models:
             t0 = time.perf_counter()
             folder = out / name
             folder.mkdir(parents=True, exist_ok=True)
             log.info("sr_dsm: method %s", name)
             if name == UPSCALE:
-                lr_height, report = _make_dsm(lr_views, lr_grid(grid, s), recipe, out / "lr", run_cluster, overwrite)
-                height = upsample_dsm(lr_height, grid)
-                from tiledsm.io import write_cog
-
-                write_cog(height, folder / "dsm.tif")
+                lr_height, report, _ = make_dsm(lr_views, lr_grid(grid, s), out / "lr")
+                with compute_context(run_cluster):
+                    write_cog(upsample_dsm(lr_height, grid), folder / "dsm.tif")
                 row: dict = {"dsm": {**report, "lr_grid_resolution": grid.resolution * s}}
             else:
                 sr_views = [_super_resolve_file(lv, folder / f"sr_view_{i}.tif", name, sr, run_cluster)
                             for i, lv in enumerate(lr_views)]
-                per_view = [image_quality(h, _read_band(p), peak=peak, border=border) for h, p in zip(hr_images, sr_views)]
+                with compute_context(run_cluster):
+                    per_view = [image_quality_lazy(_open_band(h, sr.chunk * s), _open_band(p, sr.chunk * s),
+                                                   peak=peak, border=border) for h, p in zip(views, sr_views)]
                 row = {"image": {
                     "psnr_db": float(np.mean([q["psnr_db"] for q in per_view])),
                     "ssim": float(np.mean([q["ssim"] for q in per_view])),
                     "views": per_view,
                 }}
-                height, report = _make_dsm(sr_views, grid, recipe, folder, run_cluster, overwrite)
-                row["dsm"] = report
-            method_heights[name] = np.asarray(height.values)
+                _, row["dsm"], _ = make_dsm(sr_views, grid, folder)
             methods[name] = row
             timings[name] = time.perf_counter() - t0
-    scores, metrics["common"] = _score_tables(np.asarray(hr_height.values), method_heights, refs)
-    all_heights = {"hr": np.asarray(hr_height.values), **method_heights}
-    if "truth" in info:
-        rule = RegionRule()
-        regions = regions_from_truth(truth.values, label, visible, grid.resolution, rule)
-        metrics["regions"] = {
-            "rule": f"flat ground: slope < {rule.flat_max_deg:g} deg, steep terrain: >= {rule.steep_min_deg:g} deg",
-            "dsms": list(all_heights),
-            "tables": compare_by_region(all_heights, truth.values, regions),
-        }
-    _write_blunder_map(all_heights, np.asarray(hr_height.values), refs, grid.resolution, out / "blunders.png")
+        # 4. the tables (decimated beyond 768² cells) and the blunder map
+        t0 = time.perf_counter()
+        with compute_context(run_cluster):
+            tables = score(out, truth, list(sr.models))
+            write_blunder_map(out, truth, list(sr.models), out / "blunders.png")
+        timings["scores"] = time.perf_counter() - t0
+    scores = tables["scores"]
+    metrics["common"] = tables["common"]
+    metrics["table_step"] = tables["table_step"]
+    if "regions" in tables:
+        metrics["regions"] = tables["regions"]
     metrics["hr"].update(scores.get("hr", {}))
     for name, row in methods.items():
         row.update(scores[name])
@@ -471,3 +474,69 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
         Path(tmp).write_text(markdown_report(metrics))
     log.info("sr_dsm: wrote %s", out / "report.md")
     return metrics
+
+
+def _str(path) -> str | None:
+    return None if path is None else str(path)
+
+
+# ----------------------------------------------------------------- plan
+def plan_sr_dsm(plan, recipe: SRDSMRecipe, cluster=None, *, overwrite: bool = False, names=None):
+    """Fill ``plan`` (:func:`tiledsm.plan.plan_recipe`) for an ``sr_dsm``
+    recipe: input files and SR weights, then every DSM the run makes, each
+    with its grid, chunks, levels and worker memory (:attr:`Plan.stages`):
+    ``hr`` (the DSM stage's plan of the HR pair; from the scene's
+    parameters for a synthetic one, not made yet), ``lr`` (the LR pair's,
+    for ``dsm_upscale``) and one per SR method, whose images the run makes
+    first (:func:`tiledsm.workflows.stage_dsm.plan_unmade_dsm`: the cameras
+    they will carry, the HR pair's heights)."""
+    import dataclasses
+
+    from tiledsm.dsm.views import View
+    from tiledsm.plan.recipes import check_recipe_inputs
+    from tiledsm.workflows.stage_dsm import (
+        SYNTH_ITEMSIZE, add_stages, plan_stage_dsm, plan_unmade_dsm, scene_heights, synthetic_views,
+    )
+
+    check_recipe_inputs(plan, recipe)
+    out, inp, s = plan.out, recipe.input, recipe.sr.scale
+    if inp.synth is not None:
+        from tiledsm.synth.layout import scene_layout
+
+        sy = inp.synth
+        lay = scene_layout(sy.size, sy.gsd, sy.bh, sy.seed, sy.views, False)
+        grid = grid_like(recipe.grid.like, chunk=recipe.grid.chunk) if recipe.grid.like else \
+            dataclasses.replace(lay.grid, chunk=recipe.grid.chunk)
+        paths = [out / "scene" / f"view_{i}.tif" for i in range(2)]
+        hr_views = synthetic_views(lay, lay.cameras[:2], paths)
+        h_range = scene_heights(lay, recipe.match)
+        hr_plan, grid = plan_unmade_dsm(out / "hr", hr_views, h_range, _dsm_recipe(recipe, paths, grid, out / "hr"),
+                                        itemsize=SYNTH_ITEMSIZE, limits=plan.limits)
+        plan.notes.append(f"synthetic scene {sy.size}² px at {sy.gsd:g} m is made by the run in {out / 'scene'}: its "
+                          "DSMs are planned from its parameters (truth grid, fitted cameras, terrain heights); their "
+                          "heights come from the scene's tie points once it is made")
+    else:
+        _, info = _hr_pair(recipe, out)
+        hr_recipe = _dsm_recipe(recipe, inp.images, _target_grid(recipe, info), out / "hr")
+        hr_plan = plan_stage_dsm(hr_recipe, out / "hr", cluster, overwrite=overwrite, limits=plan.limits)
+        hr_views, h_range, grid = hr_plan.prepared.views, hr_plan.prepared.h_range, hr_plan.prepared.grid
+    stages = [("hr", hr_plan)]
+    if UPSCALE in recipe.sr.models:
+        lr_views = [View(str(out / "lr" / f"view_{i}.tif"), v.rpc.scaled(1 / s), (v.shape[0] // s, v.shape[1] // s))
+                    for i, v in enumerate(hr_views)]
+        lr = lr_grid(grid, s)
+        stages.append(("lr", plan_unmade_dsm(out / "lr", lr_views, h_range, _dsm_recipe(recipe, [v.path for v in lr_views], lr, out / "lr"),
+                                             itemsize=SYNTH_ITEMSIZE, limits=plan.limits)[0]))
+    for name in recipe.sr.models:
+        if name == UPSCALE:
+            continue
+        sr_views = [View(str(out / name / f"sr_view_{i}.tif"), v.rpc, (v.shape[0] // s * s, v.shape[1] // s * s))
+                    for i, v in enumerate(hr_views)]
+        sub = _dsm_recipe(recipe, [v.path for v in sr_views], grid, out / name)
+        stages.append((name, plan_unmade_dsm(out / name, sr_views, h_range, sub, itemsize=SR_ITEMSIZE,
+                                             limits=plan.limits)[0]))
+    return add_stages(plan, stages, "per DSM (above)")
+
+
+#: bytes per pixel of the SR images (float32 DN, :func:`_super_resolve_file`)
+SR_ITEMSIZE = 4

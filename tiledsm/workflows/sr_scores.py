@@ -25,7 +25,7 @@ import numpy as np
 
 from tiledsm.errors import TiledsmError
 
-__all__ = ["SRDSMError", "LABELS", "BLUNDER_K", "REGIONS", "RegionRule", "image_quality", "common_valid", "blunder_cells",
+__all__ = ["SRDSMError", "LABELS", "BLUNDER_K", "REGIONS", "RegionRule", "image_quality", "image_quality_lazy", "common_valid", "blunder_cells",
            "scores_on", "own_completeness", "compare_on_common", "regions_from_truth", "compare_by_region",
            "common_cells_line", "markdown_report"]
 
@@ -68,6 +68,53 @@ def image_quality(hr: np.ndarray, sr: np.ndarray, *, peak: float, border: int) -
     return {
         "psnr_db": psnr(hr, sr, data_range=peak, border=border),
         "ssim": ssim(hr, sr, data_range=peak, border=border),
+        "peak": float(peak),
+        "border": int(border),
+    }
+
+
+def _ssim_map(ref: np.ndarray, tst: np.ndarray, *, peak: float, win_size: int) -> np.ndarray:
+    """Per-window SSIM of one block (with a halo of ``win_size // 2``),
+    NaN where the window touches a NaN (as :func:`tiledsm.sr.metrics.ssim`)."""
+    from scipy import ndimage
+    from skimage.metrics import structural_similarity
+
+    bad = ~(np.isfinite(ref) & np.isfinite(tst))
+    _, smap = structural_similarity(np.where(bad, 0.0, ref), np.where(bad, 0.0, tst), data_range=peak,
+                                    win_size=win_size, full=True)
+    touched = ndimage.binary_dilation(bad, structure=np.ones((win_size, win_size), bool)) if bad.any() else bad
+    return np.where(touched, np.nan, smap)
+
+
+def image_quality_lazy(hr, sr, *, peak: float, border: int, win_size: int = 7) -> dict:
+    """:func:`image_quality` of dask arrays, block by block: PSNR from the
+    sums of squared differences, SSIM as the mean of the per-window map
+    (each block with a halo of ``win_size // 2``: the windows are the whole
+    image's). The same values as on whole arrays, to float round-off."""
+    import dask
+    import dask.array as da
+
+    hr = hr.astype(np.float64)
+    sr = sr.astype(np.float64)
+    if sr.shape[0] > hr.shape[0] or sr.shape[1] > hr.shape[1]:
+        raise SRDSMError(f"SR image {sr.shape} is larger than its HR image {hr.shape}")
+    hr = hr[: sr.shape[0], : sr.shape[1]].rechunk(sr.chunks)
+    if border:
+        hr, sr = hr[border:-border, border:-border], sr[border:-border, border:-border]
+    pad = win_size // 2
+    valid = da.isfinite(hr) & da.isfinite(sr)
+    smap = da.map_overlap(_ssim_map, hr, sr, depth=pad, boundary="none", dtype=np.float64, peak=peak,
+                          win_size=win_size)[pad:-pad, pad:-pad]
+    sse, n, ssim_sum, ssim_n = dask.compute(da.where(valid, (hr - sr) ** 2, 0.0).sum(), valid.sum(),
+                                            da.nansum(smap), da.isfinite(smap).sum())
+    if not n:
+        raise SRDSMError("psnr: no pixel is finite in both images")
+    if not ssim_n:
+        raise SRDSMError("ssim: no window free of NaN")
+    mse = float(sse) / float(n)
+    return {
+        "psnr_db": float("inf") if mse == 0 else float(10 * np.log10(peak**2 / mse)),
+        "ssim": float(ssim_sum) / float(ssim_n),
         "peak": float(peak),
         "border": int(border),
     }
