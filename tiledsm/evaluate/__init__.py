@@ -32,8 +32,9 @@ __all__ = ["SCORERS", "EVALUATION", "pipeline_of", "scorer_of", "evaluate_run"]
 SCORERS: dict[str, str] = {
     "dsm": "tiledsm.evaluate.dsm:score",
     "displace": "tiledsm.evaluate.displacement:score",
-    "deformation": "tiledsm.evaluate.deformation:score",
-    "sr_dsm": "tiledsm.evaluate.sr_dsm:score",
+    # a deformation run's displacement/ folder; its dh truth scores (tiledsm.evaluate.deformation) and sr_dsm's
+    # tables (tiledsm.evaluate.sr_dsm) are computed by the runners into metrics.json
+    "deformation": "tiledsm.evaluate.displacement:score",
 }
 
 #: the file :func:`evaluate_run` writes into the run folder

@@ -45,7 +45,7 @@ class PreparedOrientation:
 
 def plan_orient(plan: Plan, recipe: OrientRecipe, cluster=None, *, overwrite: bool = False,
                 names: FieldNames = RECIPE_NAMES) -> Plan:
-    """Fill ``plan`` (made by :func:`tiledsm.plan.plan_recipe`) for a
+    """Fill ``plan`` (made by :func:`tiledsm.pipelines.plan_recipe`) for a
     ``pipeline: orient`` recipe: every image readable with an RPC, distinct
     file stems (their outputs would collide), none inside the folder; every
     other image sees ground in common with the first (footprint boxes over

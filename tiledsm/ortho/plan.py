@@ -30,7 +30,7 @@ ORTHO_EXPORTS = ("ortho.tif", "ortho.png", "ortho.json")
 
 def plan_ortho(plan: Plan, recipe: OrthoRecipe, cluster=None, *, overwrite: bool = False,
                names: FieldNames = RECIPE_NAMES) -> Plan:
-    """Fill ``plan`` (made by :func:`tiledsm.plan.plan_recipe`) for a
+    """Fill ``plan`` (made by :func:`tiledsm.pipelines.plan_recipe`) for a
     ``pipeline: ortho`` recipe: the image (pixels readable) and its camera,
     the DSM (a raster or a tiledsm store), the camera file; the lazy ortho
     (:func:`tiledsm.ortho.stage.ortho_files`) built and its tasks counted;

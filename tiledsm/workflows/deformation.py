@@ -335,7 +335,7 @@ def _plan_epochs(recipe: DeformationRecipe, out: Path, pre_in, post_in, pre_grid
 
 
 def plan_deformation(plan, recipe: DeformationRecipe, cluster=None, *, overwrite: bool = False, names=None):
-    """Fill ``plan`` (:func:`tiledsm.plan.plan_recipe`) for a deformation
+    """Fill ``plan`` (:func:`tiledsm.pipelines.plan_recipe`) for a deformation
     recipe: the recipe's input files, then the DSM stage's plan of each
     epoch into ``OUT/pre`` and ``OUT/post`` (grid, chunks, levels, worker
     memory; :attr:`Plan.stages`). A synthetic event is planned from its

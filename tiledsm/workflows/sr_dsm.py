@@ -482,7 +482,7 @@ def _str(path) -> str | None:
 
 # ----------------------------------------------------------------- plan
 def plan_sr_dsm(plan, recipe: SRDSMRecipe, cluster=None, *, overwrite: bool = False, names=None):
-    """Fill ``plan`` (:func:`tiledsm.plan.plan_recipe`) for an ``sr_dsm``
+    """Fill ``plan`` (:func:`tiledsm.pipelines.plan_recipe`) for an ``sr_dsm``
     recipe: input files and SR weights, then every DSM the run makes, each
     with its grid, chunks, levels and worker memory (:attr:`Plan.stages`):
     ``hr`` (the DSM stage's plan of the HR pair; from the scene's
