@@ -206,8 +206,8 @@ def _blocks(store: ChunkStore, r0: int, r1: int, c0: int, c1: int) -> list[tuple
 def _staged_task(*_ready, block_id, coarser, level, views, h_range, params) -> np.ndarray:
     """Match chunk ``block_id`` of ``level`` and write it into its store,
     unless an earlier run did; a ``(1, 1)`` token: whether it was computed.
-    ``_ready``: the level's setup, its block index, and the coarser tasks
-    it reads (their values unused)."""
+    ``_ready``: the level's setup, and the coarser tasks it reads (at the
+    coarsest level a block index; their values unused)."""
     import zarr
 
     store, layout = level.store, level.layout
@@ -280,9 +280,10 @@ def stage_level(
                              dask_key_name=f"stage-setup-L{geom.level}-{token}"),
         shape=(1, 1), dtype=bool, meta=np.empty((0, 0), bool),
     )
-    index = da.zeros(layout.numblocks, chunks=1, dtype=bool)
-    reads: list[da.Array] = []
-    if coarser is not None:
+    if coarser is None:
+        # the coarsest level reads nothing: a block-index array gives its tasks their grid
+        reads = [da.zeros(layout.numblocks, chunks=1, dtype=bool)]
+    else:
         cl = coarser.level.layout
         # the coarser tasks that write the coarse cells each task reads (rows by i, columns by j)
         rows = [cl.writers(layout.coarse_reads(i, 0, cl))[0] for i in range(layout.numblocks[0])]
@@ -290,7 +291,7 @@ def stage_level(
         reads = _writer_tokens(coarser.tokens, rows, cols)
     fn = partial(_staged_task, coarser=None if coarser is None else coarser.level, level=level, views=list(views),
                  h_range=tuple(h_range), params=params)
-    tokens = da.map_blocks(fn, setup, index, *reads, dtype=bool, meta=np.empty((0, 0), bool),
+    tokens = da.map_blocks(fn, setup, *reads, dtype=bool, meta=np.empty((0, 0), bool),
                            name=f"match-L{geom.level}-{token}")
     return StagedLevel(level, tokens)
 
