@@ -96,16 +96,29 @@ def _grid_like(truth: str, chunk: int):
                       width=t.rio.width, height=t.rio.height, chunk=chunk)
 
 
-def _middle(chunks: tuple[int, ...], params) -> tuple[int, int]:
-    """Cells a matching task computes for the middle chunk of one axis
-    (``task_window``; a package from before it: the chunk plus the halo)."""
-    k = len(chunks) // 2
+def _layout(geom, grid, params):
+    """The level's chunks and ``middle(axis)``: the cells a matching task
+    computes for the middle chunk of an axis (the package's layout; one
+    from before it: ``task_window``, or the chunk plus the halo)."""
     try:
-        from tiledsm.dsm.levels import task_window
+        from tiledsm.dsm.layout import level_layout
     except ImportError:
-        start, halo = sum(chunks[:k]), params.halo()
-        return max(0, start - halo), min(sum(chunks), start + chunks[k] + halo)
-    return task_window(chunks, k, params)[2:]
+        from tiledsm.dsm import level_layout as chunks_of
+
+        chunks = chunks_of(geom.grid.shape, grid.chunk, params)
+
+        def middle(axis):
+            k = len(chunks[axis]) // 2
+            try:
+                from tiledsm.dsm.levels import task_window
+            except ImportError:
+                start, halo = sum(chunks[axis][:k]), params.halo()
+                return max(0, start - halo), min(sum(chunks[axis]), start + chunks[axis][k] + halo)
+            return task_window(chunks[axis], k, params)[2:]
+
+        return chunks, middle
+    layout = level_layout(geom, grid.chunk, params)
+    return layout.chunks, lambda axis: layout.task_window(axis, len(layout.chunks[axis]) // 2)[2:]
 
 
 def _params(kernel: str | None, base):
@@ -128,20 +141,41 @@ def setup(work: Path, size: int, chunk: int, levels: int | None):
     return views, grid, h_range, levels, params
 
 
-def coarse_level(views, grid, h_range, levels, params) -> np.ndarray:
-    """The level-1 heights over the whole grid (levels > 1), in process."""
+def coarse_level(views, grid, h_range, levels, params, work: Path) -> np.ndarray:
+    """The level-1 heights over the whole grid (levels > 1), in process:
+    the engine's level stores down to level 1 (a package from before it:
+    the plain graph), speckles removed over the whole level."""
     import dask
 
-    from tiledsm.dsm import level_array, level_geometry, level_layout
-
-    arr = None
     with dask.config.set(scheduler="synchronous"):
+        try:
+            from tiledsm.dsm.layout import level_layout
+            from tiledsm.dsm.stages import stage_level
+        except ImportError:
+            from tiledsm.dsm import level_array, level_geometry, level_layout
+
+            arr = None
+            for level in range(levels - 1, 0, -1):
+                geom = _geometry(level_geometry, views, grid, level, h_range, params, levels)
+                chunks = level_layout(geom.grid.shape, grid.chunk, params)
+                arr = level_array(views, geom, chunks, h_range, params, None if arr is None else arr[0]).persist()
+            return np.asarray(arr[0].compute())
+        import zarr
+
+        from tiledsm.dsm import dsm_fingerprint, level_geometry
+
+        fp = json.dumps(dsm_fingerprint(views, grid, h_range, levels, params), sort_keys=True)
+        staged = None
         for level in range(levels - 1, 0, -1):
-            geom = _geometry(level_geometry, views, grid, level, h_range, params, levels)
-            chunks = level_layout(geom.grid.shape, grid.chunk, params)
-            arr = level_array(views, geom, chunks, h_range, params, None if arr is None else arr[0])
-            arr = arr.persist()
-        return np.asarray(arr[0].compute())
+            geom = level_geometry(views, grid, level, h_range, params, levels)
+            staged = stage_level(views, geom, level_layout(geom, grid.chunk, params), h_range, params, staged,
+                                 work / "levels", fp)
+        staged.tokens.compute()
+        from tiledsm.match.sgm import remove_speckles
+
+        h = np.asarray(zarr.open_array(store=str(staged.level.store.live_path), path="height", mode="r")[...])
+        layout = staged.level.layout
+        return remove_speckles(h, layout.speckle_max_diff, layout.speckle_size) if layout.speckle_size > 1 else h
 
 
 def _geometry(level_geometry, views, grid, level, h_range, params, levels):
@@ -153,19 +187,19 @@ def _geometry(level_geometry, views, grid, level, h_range, params, levels):
 
 def tasks(views, grid, h_range, levels, params, coarse1):
     """``{name: (geom, cells, search)}`` of the two profiled tasks."""
-    from tiledsm.dsm import level_geometry, level_layout
+    from tiledsm.dsm import level_geometry
     from tiledsm.match.pyramid import search_from_coarse, search_halo
 
     out = {}
     top = levels - 1
     geom = _geometry(level_geometry, views, grid, top, h_range, params, levels)
-    chunks = level_layout(geom.grid.shape, grid.chunk, params)
-    out["coarsest"] = (geom, (*_middle(chunks[0], params), *_middle(chunks[1], params)), None)
+    _, middle = _layout(geom, grid, params)
+    out["coarsest"] = (geom, (*middle(0), *middle(1)), None)
     if levels > 1:
         geom0 = level_geometry(views, grid, 0, h_range, params)
-        chunks = level_layout(geom0.grid.shape, grid.chunk, params)
-        r0, r1 = _middle(chunks[0], params)
-        c0, c1 = _middle(chunks[1], params)
+        _, middle = _layout(geom0, grid, params)
+        r0, r1 = middle(0)
+        c0, c1 = middle(1)
         depth = search_halo(params.search)
         # the coarse cells under the fine cells [r0, r1) x [c0, c1) (even starts), grown by depth
         pad = np.pad(coarse1, depth + 1, constant_values=np.nan)
@@ -265,7 +299,7 @@ def main(argv: list[str] | None = None) -> int:
     work.mkdir(parents=True, exist_ok=True)
     views, grid, h_range, levels, params = setup(work, args.size, args.chunk, args.levels)
     t0 = time.perf_counter()
-    coarse1 = coarse_level(views, grid, h_range, levels, params) if levels > 1 else None
+    coarse1 = coarse_level(views, grid, h_range, levels, params, work) if levels > 1 else None
     t_coarse = time.perf_counter() - t0
     todo = tasks(views, grid, h_range, levels, params, coarse1)
     kernels = args.kernels or [None]

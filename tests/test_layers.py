@@ -10,7 +10,9 @@ defers it). The rules (README, "Architecture"):
 - dependencies point one way: cli -> pipelines/workflows -> plan -> stages
   -> io -> geometry -> errors;
 - no private name (``_x``) imported from another module;
-- no module over 600 lines.
+- no module over 600 lines;
+- dask's public API only: no graph built by hand (``HighLevelGraph``,
+  ``dask.highlevelgraph``, ``dask.core``, ``dask._task_spec``; issue 35).
 """
 
 from __future__ import annotations
@@ -163,3 +165,44 @@ def test_the_graph_reader_sees_a_circle(tmp_path):
     # the oracle for the tests above: a made-up circle is found
     assert _circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
     assert _circles({"a": {"b"}, "b": set()}) == []
+
+
+#: dask modules and names a graph built by hand needs; the package uses none
+DASK_INTERNALS = ("dask.highlevelgraph", "dask.core", "dask._task_spec")
+HAND_BUILT = ("HighLevelGraph", "Task", "TaskRef", "Alias", "DataNode")
+
+
+def _dask_internals(source: str, filename: str) -> list[tuple[int, str]]:
+    """``(line, what)`` of every import of a dask internal module, or of a
+    hand-built graph's name, in ``source``."""
+    found = []
+    for node in ast.walk(ast.parse(source, filename)):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, a.name) for a in node.names
+                      if any(a.name == m or a.name.startswith(m + ".") for m in DASK_INTERNALS)]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "dask":
+            if any(node.module == m or node.module.startswith(m + ".") for m in DASK_INTERNALS):
+                found.append((node.lineno, node.module))
+            found += [(node.lineno, f"{node.module}.{a.name}") for a in node.names if a.name in HAND_BUILT]
+        elif isinstance(node, ast.Attribute) and node.attr in HAND_BUILT[:1]:
+            found.append((node.lineno, node.attr))
+        elif isinstance(node, ast.Name) and node.id == HAND_BUILT[0]:
+            found.append((node.lineno, node.id))
+    return found
+
+
+def test_no_graph_built_by_hand():
+    bad = [f"{p.relative_to(ROOT.parent)}:{line} uses {what}"
+           for p in sorted(ROOT.rglob("*.py")) for line, what in _dask_internals(p.read_text(), str(p))]
+    assert not bad, "dask's public API only:\n" + "\n".join(bad)
+
+
+def test_the_dask_reader_sees_a_hand_built_graph():
+    # the oracle for the test above: the former engine's imports are found
+    assert _dask_internals("from dask.highlevelgraph import HighLevelGraph\n", "x") == [
+        (1, "dask.highlevelgraph"), (1, "dask.highlevelgraph.HighLevelGraph")]
+    assert _dask_internals("import dask\ng = dask.highlevelgraph.HighLevelGraph(layers, deps)\n", "x") == [
+        (2, "HighLevelGraph")]
+    assert _dask_internals("import dask._task_spec as ts\nfrom dask.core import flatten\n", "x") == [
+        (1, "dask._task_spec"), (2, "dask.core")]
+    assert _dask_internals("import dask.array as da\nfrom dask import delayed\n", "x") == []

@@ -647,7 +647,7 @@ def test_worker_baseline_counts_the_cuda_context():
 
 def test_plan_levels_match_the_built_graph(scene):
     """The plan's level sizes are the lazy DSM's own: as many matching tasks
-    per level as the graph's ``match-L<level>`` layer holds."""
+    per level as the graph's ``match-L<level>-<token>`` layer holds."""
     from tiledsm.pipelines import plan_recipe
     from tiledsm.workflows.dsm import DSMRecipe
 
@@ -660,7 +660,8 @@ def test_plan_levels_match_the_built_graph(scene):
         assert [lv.level for lv in plan.levels] == list(range(levels - 1, -1, -1))
         for lv in plan.levels:
             assert lv.shape == (-(-256 // 2**lv.level),) * 2
-            assert lv.chunks == len(graph.layers[f"match-L{lv.level}"]), (chunk, lv)
+            (layer,) = [name for name in graph.layers if name.startswith(f"match-L{lv.level}-")]
+            assert lv.chunks == len(graph.layers[layer]), (chunk, lv)
         assert plan.tasks == len(graph)
         assert plan.memory.total > plan.memory.baseline
     assert not (scene.out_dir / "never").exists()

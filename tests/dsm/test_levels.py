@@ -63,18 +63,54 @@ def test_candidates_lie_on_the_scene_lattice_unless_relative(level0, relative):
     assert np.nanmedian(np.abs(err)) < 0.5
 
 
-def test_task_window_reaches_the_restart_lines_plus_half_a_window():
-    from tiledsm.dsm.levels import task_window
+def _layout(n: int, params: DSMParams):
+    """The layout of a level-0 grid of ``n`` x ``n`` cells chunked ``params.chunk``."""
+    from types import SimpleNamespace
 
+    from tiledsm.dsm.layout import level_layout
+
+    geom = SimpleNamespace(level=0, grid=SimpleNamespace(shape=(n, n), resolution=0.5), step=0.3)
+    return level_layout(geom, params.chunk, params)
+
+
+def test_task_window_reaches_the_restart_lines_plus_half_a_window():
     params = DSMParams(chunk=96)  # path period 64, window 5
-    chunks = (96, 96, 96, 96)
-    assert [task_window(chunks, k, params) for k in range(4)] == [
+    layout = _layout(384, params)
+    assert layout.chunks == ((96,) * 4,) * 2
+    assert [layout.task_window(0, k) for k in range(4)] == [
         (0, 96, 0, 130), (96, 192, 62, 194), (192, 288, 190, 322), (288, 384, 254, 384)]
+    assert layout.largest_task() == (132, 132)
     # chunks on the restart lines need only the window's cells
-    assert task_window((512, 512), 1, DSMParams(chunk=512)) == (512, 1024, 510, 1024)
+    assert _layout(1024, DSMParams(chunk=512)).task_window(1, 1) == (512, 1024, 510, 1024)
     assert DSMParams().halo() == 64  # the most a chunk on even cells needs: 62 + 2
-    no_restarts = DSMParams(match=dataclasses.replace(DSMParams().match, path_period=0))
-    assert task_window(chunks, 1, no_restarts) == (96, 192, 96 - 10, 192 + 10)
+    no_restarts = DSMParams(chunk=96, match=dataclasses.replace(DSMParams().match, path_period=0))
+    assert _layout(384, no_restarts).task_window(0, 1) == (96, 192, 96 - 10, 192 + 10)
+
+
+def test_coarse_window_and_reads_of_a_finer_chunk():
+    """Chunks of 96 over 384 cells: finer chunk 1 lies over coarse cells
+    [48, 96) of the 192-cell coarser level; its search reads ``coarse_depth``
+    (the search band's support, 13, plus half the halo, 32) coarse cells
+    around them; the store read adds the coarser level's speckle halo
+    (speckle_size 150 // 4 = 37 cells), clipped to the grid; the writers
+    are the coarser chunks (of 96) that hold those cells."""
+    from types import SimpleNamespace
+
+    from tiledsm.dsm.layout import level_layout
+
+    params = DSMParams(chunk=96)
+    fine = _layout(384, params)
+    coarse = level_layout(SimpleNamespace(level=1, grid=SimpleNamespace(shape=(192, 192), resolution=1.0), step=0.6),
+                          96, params)
+    d = fine.coarse_depth
+    assert d == 13 + 32 and fine.search_depth == 13 and coarse.speckle_halo == 37
+    assert fine.coarse_window(1, 3, coarse.shape) == (48 - 45, 96 + 45, 144 - 45, 192 + 45)
+    assert fine.coarse_window(0, 0, coarse.shape) == (-45, 48 + 45, -45, 48 + 45)
+    assert fine.coarse_reads(1, 3, coarse) == (0, 96 + 45 + 37, 144 - 45 - 37, 192)
+    rows, cols = coarse.writers(fine.coarse_reads(1, 3, coarse))
+    assert (list(rows), list(cols)) == ([0, 1], [0, 1])
+    rows, cols = coarse.writers(fine.coarse_reads(0, 0, coarse))  # coarse cells [0, 130): both chunks
+    assert (list(rows), list(cols)) == ([0, 1], [0, 1])
 
 
 def _global_band(truth: np.ndarray, step: float, rows: tuple[int, int], cols: tuple[int, int]) -> np.ndarray:
@@ -90,10 +126,8 @@ def test_a_task_window_matches_its_chunk_as_a_full_halo_does(level0):
     """The chunk [96, 192)^2 matched over its task window [62, 194)^2 equals
     the same chunk matched with a 64-cell halo on every side, bit for bit;
     a window one cell short of the restart line's window differs."""
-    from tiledsm.dsm.levels import task_window
-
     views, geom, h_range, params, truth = level0
-    start, stop, lo, hi = task_window((96, 96, 96, 96), 1, params)
+    start, stop, lo, hi = _layout(384, dataclasses.replace(params, chunk=96)).task_window(0, 1)
 
     def chunk(a: int, b: int) -> np.ndarray:
         search = _global_band(truth, geom.step, (a, b), (a, b))

@@ -1,7 +1,8 @@
-"""Coarse pyramid levels written to stores between levels
-(:mod:`tiledsm.dsm.stages`): the same DSM as the plain graph, no coarse
-level held in memory for the finer tasks, finished blocks kept on resume,
-and a store of other inputs discarded.
+"""The DSM engine (:mod:`tiledsm.dsm.stages`): every level written to a
+store, the same DSM as the plain graph (the oracle in ``plain_graph.py``),
+a reading task waiting for the writers of what it reads and no others,
+finished blocks kept on resume, a store of other inputs discarded, and a
+graph built with dask's public API only.
 
 One 384 px synthetic scene (GSD 0.5 m, B/H 0.4), computed in process with
 the synchronous scheduler.
@@ -23,6 +24,8 @@ from tiledsm.dsm.levels import level_geometry
 from tiledsm.dsm.stages import stage_reports
 from tiledsm.io.grids import grid_like
 from tiledsm.synth import make_scene
+
+from plain_graph import plain_dsm
 
 
 @pytest.fixture(scope="module")
@@ -46,6 +49,34 @@ def _stored(path: Path) -> np.ndarray:
     return np.asarray(zarr.open_array(store=str(path), path="height", mode="r")[...])
 
 
+def _layer(graph, prefix: str) -> str:
+    """The name of the one layer of ``graph`` whose name starts with ``prefix``."""
+    (name,) = [n for n in graph.layers if n.startswith(prefix)]
+    return name
+
+
+def _waits(ds, reader: str, writer: str) -> dict[tuple[int, int], set[tuple[int, int]]]:
+    """``{(i, j): {(a, b), ...}}``: the blocks of layer ``writer`` that
+    block ``(i, j)`` of layer ``reader`` (keys ``(name, i, j)`` or ``(name,
+    0, i, j)``) depends on, through the graph's aliases."""
+    from dask.core import get_dependencies
+
+    graph = ds.__dask_graph__()
+    tasks = dict(graph)
+    reader, writer = _layer(graph, reader), _layer(graph, writer)
+
+    def reach(key) -> set:
+        found = set()
+        for dep in get_dependencies(tasks, key):
+            if dep[0] == writer:
+                found.add(dep[1:])
+            elif dep[0].startswith("blocks-"):  # an alias of a token block
+                found |= reach(dep)
+        return found
+
+    return {k[-2:]: reach(k) for k in tasks if isinstance(k, tuple) and k[0] == reader}
+
+
 @pytest.mark.parametrize(
     "levels, chunk, chunk_counts",
     # matching chunks per level: 384 cells in 90 (the halos' floor) -> 4 x 4,
@@ -63,18 +94,17 @@ def test_staged_levels_give_the_plain_graphs_dsm(scene, tmp_path, levels, chunk,
     level): without one of them, 4 threads would read blocks not yet
     written."""
     views, grid, h_range, params = _inputs(scene, levels, chunk)
-    plain = _compute(dsm_from_views(views, grid, h_range, params))
+    plain = _compute(plain_dsm(views, grid, h_range, params))
     ds = dsm_from_views(views, grid, h_range, params, stage_dir=tmp_path / "levels")
-    graph = ds.__dask_graph__()
     assert not (tmp_path / "levels").exists(), "building the graph must not write anything"
-    deps = graph.dependencies
     for level in range(1, levels):
-        assert deps[f"match-L{level - 1}"] == {f"stage-setup-L{level - 1}", f"match-L{level}"}
+        # every finer task waits for some coarser writers; together, for all of them
+        waits = _waits(ds, f"match-L{level - 1}-", f"match-L{level}-")
+        assert all(waits.values()) and len(set().union(*waits.values())) == chunk_counts[level]
     staged = _compute(ds)
     np.testing.assert_array_equal(staged[0], plain[0])
     np.testing.assert_array_equal(staged[1], plain[1])
     assert np.isfinite(plain[0]).mean() > 0.8
-    assert deps["despeckle-L0"] == {"match-L0"}  # the speckle filter reads the matched chunks around its own
     with dask.config.set(scheduler="threads", num_workers=4):
         again = dask.compute(*(dsm_from_views(views, grid, h_range, params, stage_dir=tmp_path / "threads")[v].data
                                for v in ("height", "confidence")))
@@ -108,6 +138,34 @@ def test_staged_levels_give_the_plain_graphs_dsm(scene, tmp_path, levels, chunk,
         assert 2 * params.refine_steps + 1 <= band < 16, (level, band)  # measured 13.1-14.1
 
 
+def test_without_a_stage_dir_the_same_engine_uses_a_folder_of_its_own(scene, tmp_path):
+    """The Python API without ``stage_dir``: the same graph, its stores in
+    a temporary folder that lives as long as the graph and is removed
+    with it; the same DSM as with a ``stage_dir``."""
+    import gc
+
+    views, grid, h_range, params = _inputs(scene, 2, 64)
+    ds = dsm_from_views(views, grid, h_range, params)
+    setup = [v for k, v in dict(ds.__dask_graph__()).items() if isinstance(k, str) and k.startswith("stage-setup-L0-")]
+    folder = Path(_store_folder(setup[0]))
+    got = _compute(ds)
+    assert sorted(p.name for p in folder.iterdir()) == ["L0.zarr.partial", "L1.zarr.partial"]
+    staged = _compute(dsm_from_views(views, grid, h_range, params, stage_dir=tmp_path / "levels"))
+    np.testing.assert_array_equal(got[0], staged[0])
+    np.testing.assert_array_equal(got[1], staged[1])
+    del ds, setup
+    gc.collect()
+    assert not folder.exists()
+
+
+def _store_folder(task) -> str:
+    """The folder of the store a level's setup task creates (its first argument, a ChunkStore)."""
+    from tiledsm.io import ChunkStore
+
+    (store,) = [a for a in getattr(task, "args", ()) if isinstance(a, ChunkStore)]
+    return str(Path(store.path).parent)
+
+
 def test_a_finer_task_waits_for_the_coarse_chunks_around_its_own_only(scene, tmp_path):
     """On a 4096² grid (the graph only; nothing is computed), chunks of
     512: the coarse level has 4 x 4 tasks; a finer task waits for the
@@ -119,20 +177,13 @@ def test_a_finer_task_waits_for_the_coarse_chunks_around_its_own_only(scene, tmp
     grid = GroundGrid(crs=small.crs, x0=small.x0, y0=small.y0, resolution=small.resolution, width=4096, height=4096,
                       chunk=512)
     ds = dsm_from_views(views, grid, h_range, DSMParams(levels=2, chunk=512), stage_dir=tmp_path / "levels")
-    tasks = dict(ds.__dask_graph__())
     assert not (tmp_path / "levels").exists()
-
-    def waits(name, on):
-        # keys (name, i, j), or (name, 0, i, j) for the (2, y, x) DSM's chunks
-        return {k[-2:]: {d[1:] for d in tasks[k][1:] if isinstance(d, tuple) and d[0] == on}
-                for k in tasks if isinstance(k, tuple) and k[0] == name}
-
-    fine = waits("match-L0", "match-L1")
+    fine = _waits(ds, "match-L0-", "match-L1-")
     assert len(fine) == 64 and set().union(*fine.values()) == {(a, b) for a in range(4) for b in range(4)}
     # finer chunk (i, j) lies over coarse chunk (i // 2, j // 2); its search reaches a few coarse cells beyond
     assert fine[(0, 0)] == {(0, 0)} and fine[(1, 1)] == {(0, 0), (0, 1), (1, 0), (1, 1)}
     assert fine[(3, 4)] == {(a, b) for a in (1, 2) for b in (1, 2)}  # coarse rows 768-1024, columns 1024-1280
-    speckle = waits("despeckle-L0", "match-L0")
+    speckle = _waits(ds, "despeckle-L0-", "match-L0-")
     assert len(speckle) == 64 and speckle[(0, 0)] == {(0, 0), (0, 1), (1, 0), (1, 1)}
     assert speckle[(3, 4)] == {(a, b) for a in (2, 3, 4) for b in (3, 4, 5)}
 

@@ -15,25 +15,16 @@ unless a geoid grid is given for the output; NaN means "no height".
 
 The package: :mod:`.params` (:class:`DSMParams`), :mod:`.views` (images,
 cameras, height range, default grid, footprints), :mod:`.levels` (one
-pyramid level's layout and graph), :mod:`.engine` (the coarse-to-fine DSM,
-its fingerprint) and :mod:`.products` (heights above a geoid).
+pyramid level's geometry and the matching of one chunk), :mod:`.layout`
+(a level's chunks, halos and depths), :mod:`.stages` (the engine: each
+level matched into a store), :mod:`.engine` (the coarse-to-fine DSM, its
+fingerprint) and :mod:`.products` (heights above a geoid).
 """
 
 from tiledsm.dsm.params import DSMParams
 from tiledsm.dsm.views import View, default_grid, footprint_mask, open_views, read_window, scene_height_range
-from tiledsm.dsm.levels import (
-    LevelGeometry,
-    auto_levels,
-    coarse_blocks,
-    despeckle,
-    level_array,
-    level_chunks,
-    level_geometry,
-    level_grid,
-    level_layout,
-    match_cells,
-    min_chunk,
-)
+from tiledsm.dsm.layout import LevelLayout, level_chunks, level_layout, min_chunk
+from tiledsm.dsm.levels import LevelGeometry, auto_levels, level_geometry, level_grid, match_cells
 from tiledsm.dsm.engine import dsm_fingerprint, dsm_from_pair, dsm_from_views, prepare_views
 from tiledsm.dsm.products import heights_above_geoid
 
@@ -51,11 +42,9 @@ __all__ = [
     "level_geometry",
     "level_chunks",
     "level_layout",
+    "LevelLayout",
     "min_chunk",
     "match_cells",
-    "coarse_blocks",
-    "despeckle",
-    "level_array",
     "auto_levels",
     "dsm_from_views",
     "dsm_fingerprint",

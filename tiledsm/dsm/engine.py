@@ -1,5 +1,6 @@
 """The DSM of views on a ground grid: the coarse-to-fine graph of every
-level (:func:`dsm_from_views`), its fingerprint, and the pair shortcut."""
+level (:func:`dsm_from_views`, on :mod:`tiledsm.dsm.stages`), its
+fingerprint, and the pair shortcut."""
 
 from __future__ import annotations
 
@@ -16,7 +17,9 @@ import xarray as xr
 from tiledsm.errors import MatchingError
 from tiledsm.geometry.grid import GroundGrid
 from tiledsm.dsm.params import DSMParams
-from tiledsm.dsm.levels import auto_levels, level_array, level_geometry, level_layout
+from tiledsm.dsm.layout import level_layout
+from tiledsm.dsm.levels import auto_levels, level_geometry
+from tiledsm.dsm.stages import ScratchFolder, finest_from_stage, stage_level
 from tiledsm.dsm.views import View, default_grid, open_views, scene_height_range
 
 log = logging.getLogger(__name__)
@@ -31,18 +34,18 @@ def dsm_from_views(
 ) -> xr.Dataset:
     """Lazy DSM of ``views`` on ``grid`` (coarse to fine).
 
-    Each pyramid level is a dask array on its own grid; a finer level is one
-    ``map_blocks`` over its grid's chunks (plus halo) with the search band
-    derived from the coarser level inside each task
-    (:func:`level_array`). Every halo is derived from the parameters, so
-    the result does not depend on the chunking.
+    Each pyramid level is matched chunk by chunk (a chunk plus its halo,
+    :class:`~tiledsm.dsm.layout.LevelLayout`) into a resumable store in
+    ``stage_dir``, searching around the coarser level's stored heights; the
+    DSM's chunks read the finest store and remove its speckles
+    (:mod:`tiledsm.dsm.stages`). Every halo is derived from the parameters,
+    so the result does not depend on the chunking, and a task waits only
+    for the tasks that write what it reads.
 
-    With ``stage_dir``, every level is matched into a resumable store there
-    while the graph runs (:mod:`tiledsm.dsm.stages`) and the later tasks
-    (finer levels, the speckle filter) read their windows from it, so that
-    no worker holds results for its neighbours (the DSM is the same); the
-    folder must be reachable from every worker. Nothing is written before
-    the graph is computed.
+    ``stage_dir`` must be reachable from every worker; the stores of an
+    interrupted run there are resumed. Without it the stores go to a
+    temporary folder, removed when the returned dataset's graph is gone
+    (the same engine). Nothing is written before the graph is computed.
 
     Returns
     -------
@@ -56,23 +59,15 @@ def dsm_from_views(
         raise MatchingError(f"empty height range {h_range}")
     levels = params.levels or auto_levels(views, grid, h_range, params)
     fp = dsm_fingerprint(views, grid, h_range, levels, params)
-    arr, staged = None, None
+    scratch = ScratchFolder() if stage_dir is None else None
+    # absolute: the workers of a remote cluster need not share the client's working directory
+    where = scratch.path if scratch is not None else Path(stage_dir).absolute()
+    staged = None
     for level in range(levels - 1, -1, -1):
         geom = level_geometry(views, grid, level, h_range, params, levels)
-        chunks = level_layout(geom.grid.shape, grid.chunk, params)
-        if stage_dir is not None:
-            from tiledsm.dsm.stages import stage_level
-
-            # absolute: the workers of a remote cluster need not share the client's working directory
-            staged = stage_level(views, geom, chunks, h_range, params, staged, Path(stage_dir).absolute(),
-                                 json.dumps(fp, sort_keys=True))
-        else:
-            arr = level_array(views, geom, chunks, h_range, params, None if arr is None else arr[0])
-    if staged is not None:
-        from tiledsm.dsm.stages import finest_from_stage
-
-        arr = finest_from_stage(staged, grid.chunks, params)
-    arr = arr.rechunk(((2,), *grid.chunks))
+        staged = stage_level(views, geom, level_layout(geom, grid.chunk, params), h_range, params, staged, where,
+                             json.dumps(fp, sort_keys=True), keep=scratch)
+    arr = finest_from_stage(staged, grid.chunks)
     # the finest level is on `grid` itself; its chunks are the grid's
     ds = xr.Dataset(
         {

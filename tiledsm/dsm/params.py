@@ -84,7 +84,7 @@ class DSMParams:
 
     def halo(self) -> int:
         """Most cells (even) a matching task reaches beyond its chunk
-        (:func:`tiledsm.dsm.levels.task_window`): back to the previous
+        (:meth:`tiledsm.dsm.layout.LevelLayout.task_window`): back to the previous
         restart line of the semi-global paths
         (:attr:`~tiledsm.match.sgvll.SGVLLParams.path_period`, which makes
         the aggregation exact in every chunking) plus half the correlation

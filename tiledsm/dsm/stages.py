@@ -1,27 +1,26 @@
-"""Pyramid levels kept on disk between stages, so that a worker's memory
-does not grow with the scene.
+"""The DSM engine: every pyramid level matched into a store on disk, so
+that a worker's memory does not grow with the scene, built with dask's
+public array API only.
 
-In the plain graph (:func:`tiledsm.dsm.levels.level_array`) a finer level's
-tasks depend on the coarser level's results through an overlap
-(``coarse_blocks``), and the speckle filter on its level's matched chunks
-through another: dask keeps every result in a worker's memory until the
-last task that needs it has run, and on a large grid that frontier grows
-with the grid (an 8192² scene: ~150 MiB per worker on top of its largest
-task, ~290 MiB at times). Here each level is matched into a resumable zarr
-store (:class:`~tiledsm.io.ChunkStore`, one block per matching chunk), its
-tasks return only a token, and every later task reads the window it
-needs from the store: a finer level its coarse heights, the finest level's speckle
-filter its chunk plus halo. A reading task depends on the tasks that
-write the blocks it reads, and on no others: no level waits for the
-whole coarser level, so a finer level's first chunks are matched while
-the coarser level's last ones still run, and the speckle filter and the
-DSM's writes start as soon as a chunk's neighbours are matched (on 2
-workers, a thread no longer idles at each level's end). The stores hold
-raw matched heights; the
-speckle filter of a coarse level runs on the window read (grown by the
-filter's own halo), which is exact for the same reason the filter is exact
-in any chunking (:func:`~tiledsm.dsm.levels.despeckle`), so the DSM is
-bit-identical to the plain graph's (tested).
+Each level is matched into a resumable zarr store
+(:class:`~tiledsm.io.ChunkStore`, one block per matching chunk) by one
+``map_blocks`` over its chunk grid whose tasks write their chunk and
+return a one-cell token (:func:`stage_level`); every later task reads the
+window it needs from the store: a finer level its coarse heights, the
+finest level's speckle filter its chunk plus halo (:func:`finest_from_stage`).
+A reading task receives, as extra array arguments, the tokens of exactly
+the tasks that write the blocks it reads (:func:`_writer_tokens`: the
+token array's blocks picked with ``Array.blocks``), and of no others: no
+level waits for the whole coarser level, so a finer level's first chunks
+are matched while the coarser level's last ones still run, and the
+speckle filter and the DSM's writes start as soon as a chunk's neighbours
+are matched (on 2 workers, a thread does not idle at each level's end).
+No worker holds results for its neighbours: the tokens are one byte. The
+stores hold raw matched heights; the speckle filter of a level runs on the
+window read, grown by the filter's own halo, which makes it exact in any
+chunking (a component smaller than the halo lies inside the window), so
+the DSM does not depend on the chunks (tested against a plain graph in
+``tests/dsm/plain_graph.py``).
 
 A store's blocks finished by an interrupted run are kept: the tasks of
 blocks already marked done return at once. The store records which of its
@@ -35,29 +34,31 @@ discarded when its level is set up.
 
 from __future__ import annotations
 
-import bisect
-import functools
-import itertools
-
 import json
+import shutil
+import tempfile
+import weakref
 from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import Sequence
 
+import dask
 import dask.array as da
+from dask.base import tokenize
 import numpy as np
-from dask.highlevelgraph import HighLevelGraph
 
-from tiledsm.dsm.levels import LevelGeometry, coarse_chunks, coarse_depth, match_task, min_chunk, speckle_rule
+from tiledsm.dsm.layout import LevelLayout, chunk_window
+from tiledsm.dsm.levels import LevelGeometry, match_task
 from tiledsm.dsm.params import DSMParams
 from tiledsm.dsm.views import View
 from tiledsm.io import ChunkStore
 
-__all__ = ["LEVELS_DIR", "LevelStore", "StagedLevel", "stage_level", "finest_from_stage", "coarse_window", "stage_reports"]
+__all__ = ["LEVELS_DIR", "LevelStore", "StagedLevel", "ScratchFolder", "stage_level", "finest_from_stage",
+           "stage_reports"]
 
-#: the folder of a run's coarse level stores, beside ``dsm.zarr`` (removed
-#: once the DSM store is finished)
+#: the folder of a run's level stores, beside ``dsm.zarr`` (removed once
+#: the DSM store is finished)
 LEVELS_DIR = "dsm.levels"
 _FP_ATTR = "stage_fingerprint"
 #: per-block candidate counts (sum over the searched cells, and the cells);
@@ -78,10 +79,13 @@ class LevelStore:
         level also ``confidence``), blocks of the level's chunk side.
     geom : LevelGeometry
         The level.
+    layout : LevelLayout
+        Its chunks, halos and depths.
     """
 
     store: ChunkStore
     geom: LevelGeometry
+    layout: LevelLayout
 
 
 @dataclass(frozen=True)
@@ -92,44 +96,41 @@ class StagedLevel:
     ----------
     level : LevelStore
         The store and the level.
-    chunks : tuple of tuple of int
-        The level's matching chunks ``(rows, cols)``.
-    name : str
-        Its matching tasks' layer: task ``(name, i, j)`` writes the blocks
-        of chunk ``(i, j)``.
-    graph : HighLevelGraph
-        The tasks of the level (coarser levels included); never given to
-        a task, which carries ``level`` only.
+    tokens : dask.array.Array
+        ``bool`` of shape :attr:`LevelLayout.numblocks`, one cell per block
+        (chunks of 1): block ``(i, j)`` is the task that writes matching
+        chunk ``(i, j)`` into the store (True when this run computed it),
+        after the coarser levels' tasks it reads.
     """
 
     level: LevelStore
-    chunks: tuple[tuple[int, ...], tuple[int, ...]]
-    name: str
-    graph: HighLevelGraph
-
-    def writers(self, r0: int, r1: int, c0: int, c1: int) -> list[tuple[str, int, int]]:
-        """Keys of the matching tasks whose chunks hold level cells
-        ``[r0:r1, c0:c1]``: what a task reading them must wait for."""
-        rows = _overlapping(self.chunks[0], r0, r1)
-        cols = _overlapping(self.chunks[1], c0, c1)
-        return [(self.name, a, b) for a in rows for b in cols]
+    tokens: da.Array
 
 
-@functools.lru_cache(maxsize=8)
-def _edges(chunks: tuple[int, ...]) -> list[int]:
-    """Where the chunks of an axis start, and its end."""
-    return [0, *itertools.accumulate(chunks)]
+class ScratchFolder:
+    """A temporary folder for the level stores of a DSM computed without a
+    ``stage_dir``: removed when the last graph that holds this object is
+    gone (on the client; a copy sent to a worker is only its path)."""
+
+    def __init__(self) -> None:
+        self.path = Path(tempfile.mkdtemp(prefix="tiledsm-levels-"))
+        weakref.finalize(self, shutil.rmtree, str(self.path), True)
+
+    def __reduce__(self):
+        return (Path, (str(self.path),))
 
 
-def _overlapping(chunks: tuple[int, ...], start: int, stop: int) -> list[int]:
-    """Indices of the chunks of an axis chunked ``chunks`` that hold some of
-    ``[start, stop)``."""
-    # a binary search, not a scan: a grid of n chunks a side asks this 2 n² times while its graph is built
-    # (a scan took 102 s of the plan of a 402 x 386-chunk grid, issue 37)
-    edges = _edges(chunks)
-    first = max(bisect.bisect_right(edges, start) - 1, 0)
-    last = min(bisect.bisect_left(edges, stop), len(chunks))
-    return [k for k in range(first, last) if edges[k + 1] > start and edges[k] < stop]
+def _writer_tokens(tokens: da.Array, rows: Sequence[range], cols: Sequence[range]) -> list[da.Array]:
+    """Arrays of ``len(rows) x len(cols)`` one-cell blocks: block ``(i, j)``
+    of them, together, are the blocks ``rows[i] x cols[j]`` of ``tokens``
+    (each at least once): what a task reading the cells of those writers
+    receives, so that it runs after them and after no others."""
+    out = []
+    for a in range(max(len(r) for r in rows)):
+        by_row = tokens.blocks[[r[min(a, len(r) - 1)] for r in rows]]
+        for b in range(max(len(c) for c in cols)):
+            out.append(by_row.blocks[:, [c[min(b, len(c) - 1)] for c in cols]])
+    return out
 
 
 # ------------------------------------------------------------------ windows
@@ -139,52 +140,38 @@ def _read(store: ChunkStore, r0: int, r1: int, c0: int, c1: int, variable: str =
     return np.asarray(zarr.open_array(store=str(store.live_path), path=variable, mode="r")[r0:r1, c0:c1])
 
 
-def coarse_window(
-    staged: LevelStore, chunks: tuple[tuple[int, ...], tuple[int, ...]], i: int, j: int, params: DSMParams
-) -> np.ndarray:
-    """The coarse heights finer task ``(i, j)`` of ``chunks`` searches
-    around, read from ``staged``'s store: its chunk's coarse cells grown by
-    :func:`~tiledsm.dsm.levels.coarse_depth` (NaN beyond the grid), speckles
-    removed as the plain graph removes them.
+def coarse_heights(coarser: LevelStore, layout: LevelLayout, i: int, j: int) -> np.ndarray:
+    """The coarse heights finer task ``(i, j)`` of ``layout`` searches
+    around, read from ``coarser``'s store: its
+    :meth:`~LevelLayout.coarse_window` (NaN beyond the grid), speckles
+    removed.
 
-    The filter runs on the window grown by its own halo (the speckle size,
-    clipped to the grid): a component smaller than that lies inside it, so
-    every cell kept is the one the whole-level filter keeps.
+    The filter runs on the window grown by its own halo, clipped to the
+    grid (:meth:`~LevelLayout.coarse_reads`): a component smaller than that
+    lies inside it, so every cell kept is the one the whole-level filter
+    keeps.
     """
     from tiledsm.match.sgm import remove_speckles
 
-    (a0, a1, b0, b1), (r0, r1, c0, c1) = _coarse_extent(staged, chunks, i, j, params)
-    H, W = staged.store.shape
-    size, max_diff = speckle_rule(staged.geom, params)
-    h = _read(staged.store, r0, r1, c0, c1)
-    if size > 1:
-        h = remove_speckles(h, max_diff, size)
+    cl = coarser.layout
+    a0, a1, b0, b1 = layout.coarse_window(i, j, cl.shape)
+    r0, r1, c0, c1 = layout.coarse_reads(i, j, cl)
+    H, W = cl.shape
+    h = _read(coarser.store, r0, r1, c0, c1)
+    if cl.speckle_size > 1:
+        h = remove_speckles(h, cl.speckle_max_diff, cl.speckle_size)
     out = np.full((a1 - a0, b1 - b0), np.nan, np.float32)
     y0, y1, x0, x1 = max(a0, 0), min(a1, H), max(b0, 0), min(b1, W)
     out[y0 - a0 : y1 - a0, x0 - b0 : x1 - b0] = h[y0 - r0 : y1 - r0, x0 - c0 : x1 - c0]
     return out
 
 
-def _coarse_extent(staged: LevelStore, chunks, i: int, j: int, params: DSMParams):
-    """``((a0, a1, b0, b1), (r0, r1, c0, c1))``: the coarse window of finer
-    task ``(i, j)`` (:func:`coarse_window`; may reach beyond the grid) and
-    the coarse cells read for it (grown by the speckle filter's halo,
-    clipped to the grid)."""
-    depth = coarse_depth(params)
-    H, W = staged.store.shape
-    # as coarse_blocks: the coarse cells under the finer chunk, grown by depth
-    rows, cols = coarse_chunks(chunks, (H, W))
-    a0, b0 = sum(rows[:i]) - depth, sum(cols[:j]) - depth
-    a1, b1 = a0 + rows[i] + 2 * depth, b0 + cols[j] + 2 * depth
-    halo = max(speckle_rule(staged.geom, params)[0], 0)
-    return (a0, a1, b0, b1), (max(0, a0 - halo), min(H, a1 + halo), max(0, b0 - halo), min(W, b1 + halo))
-
-
 # ------------------------------------------------------------------ tasks
-def _setup(store: ChunkStore, fingerprint: str, geom: LevelGeometry, tasks: tuple[int, int]) -> bool:
+def _setup(store: ChunkStore, fingerprint: str, geom: LevelGeometry, tasks: tuple[int, int], keep=None) -> np.ndarray:
     """Create the level's store, or keep it (resume) when it holds the same
     fingerprint; a store of anything else is discarded. The marks of the
-    ``tasks`` chunks this run computes start at 0."""
+    ``tasks`` chunks this run computes start at 0. ``keep``: an object the
+    graph must hold while it exists (a :class:`ScratchFolder`)."""
     import zarr
 
     from tiledsm.io import create_store
@@ -208,7 +195,7 @@ def _setup(store: ChunkStore, fingerprint: str, geom: LevelGeometry, tasks: tupl
             counts.create_array(name, shape=store.numblocks, chunks=(1, 1), dtype=dtype, fill_value=0)
     # one zarr chunk per task: tasks mark theirs concurrently
     counts.create_array(_COMPUTED, shape=tasks, chunks=(1, 1), dtype="uint8", fill_value=0, overwrite=True)
-    return True
+    return np.ones((1, 1), bool)
 
 
 def _blocks(store: ChunkStore, r0: int, r1: int, c0: int, c1: int) -> list[tuple[int, int]]:
@@ -216,22 +203,22 @@ def _blocks(store: ChunkStore, r0: int, r1: int, c0: int, c1: int) -> list[tuple
     return [(bi, bj) for bi in range(r0 // cy, -(-r1 // cy)) for bj in range(c0 // cx, -(-c1 // cx))]
 
 
-def _staged_task(i, j, *_ready, staged_in, store, views, geom, chunks, h_range, params) -> bool:
-    """Match chunk ``(i, j)`` of a level and write it into ``store``,
-    unless an earlier run did; return whether it was computed. ``_ready``:
-    the level's setup and the coarser tasks it reads (their values unused)."""
-    from tiledsm.dsm.levels import chunk_window
-
-    r0, r1, _, _ = chunk_window(chunks[0], i, 0)
-    c0, c1, _, _ = chunk_window(chunks[1], j, 0)
-    blocks = _blocks(store, r0, r1, c0, c1)
-    if store.blocks_done(blocks):
-        return False
+def _staged_task(*_ready, block_id, coarser, level, views, h_range, params) -> np.ndarray:
+    """Match chunk ``block_id`` of ``level`` and write it into its store,
+    unless an earlier run did; a ``(1, 1)`` token: whether it was computed.
+    ``_ready``: the level's setup, and the coarser tasks it reads (at the
+    coarsest level a block index; their values unused)."""
     import zarr
 
-    coarse = None if staged_in is None else coarse_window(staged_in, chunks, i, j, params)
+    store, layout = level.store, level.layout
+    i, j = block_id
+    r0, r1, c0, c1 = layout.chunk_cells(i, j)
+    blocks = _blocks(store, r0, r1, c0, c1)
+    if store.blocks_done(blocks):
+        return np.zeros((1, 1), bool)
+    coarse = None if coarser is None else coarse_heights(coarser, layout, i, j)
     details: dict = {}
-    res = match_task(coarse, views, geom, chunks, h_range, params, staged_in is None, block_id=(i, j), details=details)
+    res = match_task(coarse, views, level.geom, layout, h_range, params, i, j, details=details)
     where = str(store.live_path)
     for bi, bj in blocks:
         w0, w1, v0, v1 = store.block_window(bi, bj)
@@ -242,23 +229,25 @@ def _staged_task(i, j, *_ready, staged_in, store, views, geom, chunks, h_range, 
         part = res[:, w0 - r0 : w1 - r0, v0 - c0 : v1 - c0]
         store.write_block(bi, bj, dict(zip(store.variables, part)))
     zarr.open_array(store=where, path=f"{_COUNTS}/{_COMPUTED}", mode="r+")[i, j] = 1
-    return True
+    return np.ones((1, 1), bool)
 
 
-def _despeckled_task(i, j, *_ready, staged, chunks, max_diff, size) -> np.ndarray:
-    """Heights and confidence of grid chunk ``(i, j)`` of the finest level,
-    read with the speckle filter's halo from its store and filtered
+def _despeckled_task(*_ready, block_id, level, grid_chunks) -> np.ndarray:
+    """Heights and confidence of grid chunk ``block_id[-2:]`` of the finest
+    level, read with the speckle filter's halo from its store and filtered
     (``_ready``: the matching tasks that wrote them)."""
-    from tiledsm.dsm.levels import chunk_window
     from tiledsm.match.sgm import remove_speckles
 
-    r0, r1, hr0, hr1 = chunk_window(chunks[0], i, size)
-    c0, c1, hc0, hc1 = chunk_window(chunks[1], j, size)
-    height = _read(staged.store, hr0, hr1, hc0, hc1)
-    if size > 1:
-        height = remove_speckles(height, max_diff, size)
-    # the filter leaves the confidence as it is (despeckle_heights): read without the halo
-    rest = [_read(staged.store, r0, r1, c0, c1, v) for v in staged.store.variables[1:]]
+    layout = level.layout
+    size = layout.speckle_halo
+    i, j = block_id[-2:]
+    r0, r1, hr0, hr1 = chunk_window(grid_chunks[0], i, size)
+    c0, c1, hc0, hc1 = chunk_window(grid_chunks[1], j, size)
+    height = _read(level.store, hr0, hr1, hc0, hc1)
+    if layout.speckle_size > 1:
+        height = remove_speckles(height, layout.speckle_max_diff, layout.speckle_size)
+    # the filter leaves the confidence as it is: read without the halo
+    rest = [_read(level.store, r0, r1, c0, c1, v) for v in level.store.variables[1:]]
     return np.stack([height[r0 - hr0 : r1 - hr0, c0 - hc0 : c1 - hc0], *rest])
 
 
@@ -266,61 +255,61 @@ def _despeckled_task(i, j, *_ready, staged, chunks, max_diff, size) -> np.ndarra
 def stage_level(
     views: Sequence[View],
     geom: LevelGeometry,
-    chunks: tuple[tuple[int, ...], tuple[int, ...]],
+    layout: LevelLayout,
     h_range: tuple[float, float],
     params: DSMParams,
     coarser: StagedLevel | None,
     stage_dir: Path,
     fingerprint: str,
+    keep: ScratchFolder | None = None,
 ) -> StagedLevel:
-    """The graph that matches level ``geom`` in ``chunks`` into
+    """The graph that matches level ``geom`` in ``layout``'s chunks into
     ``stage_dir/L<level>.zarr`` (searching around ``coarser``'s stored
     heights, or the whole height range at the coarsest level): heights at
-    a coarse level, heights and confidence at the finest."""
-    # the side of the level's chunks (:func:`~tiledsm.dsm.levels.level_layout`):
-    # a merged last chunk covers two store blocks
-    side = max(int(geom.grid.chunk), min_chunk(params))
+    a coarse level, heights and confidence at the finest. ``keep`` rides
+    along in the level's setup task (:class:`ScratchFolder`)."""
+    side = layout.side
     variables = ("height", "confidence") if geom.level == 0 else ("height",)
-    store = ChunkStore(str(Path(stage_dir) / f"L{geom.level}.zarr"), variables, tuple(geom.grid.shape), (side, side))
+    store = ChunkStore(str(Path(stage_dir) / f"L{geom.level}.zarr"), variables, layout.shape, (side, side))
+    level = LevelStore(store, geom, layout)
     fp = json.dumps({"dsm": json.loads(fingerprint), "level": geom.level}, sort_keys=True)
-    # fixed names, as the plain graph's ``match-L<level>`` (one DSM per graph)
-    setup_key, name = f"stage-setup-L{geom.level}", f"match-L{geom.level}"
-    fn = partial(
-        _staged_task, staged_in=None if coarser is None else coarser.level, store=store, views=list(views), geom=geom,
-        chunks=chunks, h_range=tuple(h_range), params=params,
+    # one DSM's tasks apart from another's (two epochs may share a graph)
+    token = tokenize(fp, store.path)
+    setup = da.from_delayed(
+        dask.delayed(_setup)(store, fp, geom, layout.numblocks, keep,
+                             dask_key_name=f"stage-setup-L{geom.level}-{token}"),
+        shape=(1, 1), dtype=bool, meta=np.empty((0, 0), bool),
     )
-    tasks = {}
-    for i in range(len(chunks[0])):
-        for j in range(len(chunks[1])):
-            # the coarser tasks that write the coarse cells this task reads
-            reads = [] if coarser is None else coarser.writers(*_coarse_extent(coarser.level, chunks, i, j, params)[1])
-            tasks[(name, i, j)] = (fn, i, j, setup_key, *reads)
-    layers = {setup_key: {setup_key: (_setup, store, fp, geom, tuple(map(len, chunks)))}, name: tasks}
-    deps = {setup_key: set(), name: {setup_key} | ({coarser.name} if coarser else set())}
-    graph = HighLevelGraph(layers, deps)
-    if coarser is not None:
-        graph = HighLevelGraph.merge(coarser.graph, graph)
-    return StagedLevel(LevelStore(store, geom), tuple(map(tuple, chunks)), name, graph)
+    if coarser is None:
+        # the coarsest level reads nothing: a block-index array gives its tasks their grid
+        reads = [da.zeros(layout.numblocks, chunks=1, dtype=bool)]
+    else:
+        cl = coarser.level.layout
+        # the coarser tasks that write the coarse cells each task reads (rows by i, columns by j)
+        rows = [cl.writers(layout.coarse_reads(i, 0, cl))[0] for i in range(layout.numblocks[0])]
+        cols = [cl.writers(layout.coarse_reads(0, j, cl))[1] for j in range(layout.numblocks[1])]
+        reads = _writer_tokens(coarser.tokens, rows, cols)
+    fn = partial(_staged_task, coarser=None if coarser is None else coarser.level, level=level, views=list(views),
+                 h_range=tuple(h_range), params=params)
+    tokens = da.map_blocks(fn, setup, *reads, dtype=bool, meta=np.empty((0, 0), bool),
+                           name=f"match-L{geom.level}-{token}")
+    return StagedLevel(level, tokens)
 
 
-def finest_from_stage(staged: StagedLevel, chunks: tuple[tuple[int, ...], tuple[int, ...]], params: DSMParams) -> da.Array:
+def finest_from_stage(staged: StagedLevel, grid_chunks: tuple[tuple[int, ...], tuple[int, ...]]) -> da.Array:
     """Lazy ``(2, H, W)`` heights and confidence of the finest level, chunked
-    ``chunks`` (the grid's), from its store once complete: each task reads
-    its chunk plus the speckle filter's halo and filters it (as
-    :func:`~tiledsm.dsm.levels.despeckle`)."""
-    from tiledsm.dsm.levels import chunk_window
-
-    size, max_diff = speckle_rule(staged.level.geom, params)
-    name = f"despeckle-L{staged.level.geom.level}"
-    fn = partial(_despeckled_task, staged=staged.level, chunks=chunks, max_diff=max_diff, size=max(size, 0))
-    layer = {}
-    for i in range(len(chunks[0])):
-        for j in range(len(chunks[1])):
-            _, _, r0, r1 = chunk_window(chunks[0], i, max(size, 0))
-            _, _, c0, c1 = chunk_window(chunks[1], j, max(size, 0))
-            layer[(name, 0, i, j)] = (fn, i, j, *staged.writers(r0, r1, c0, c1))
-    graph = HighLevelGraph.merge(staged.graph, HighLevelGraph({name: layer}, {name: {staged.name}}))
-    return da.Array(graph, name, ((2,), *chunks), dtype=np.float32, meta=np.empty((0, 0, 0), np.float32))
+    ``grid_chunks`` (the grid's), from its store: each task reads its chunk
+    plus the speckle filter's halo once the tasks writing them are done,
+    and filters it."""
+    layout = staged.level.layout
+    halo = layout.speckle_halo
+    rows = [layout.writers((*chunk_window(grid_chunks[0], i, halo)[2:], 0, 1))[0] for i in range(len(grid_chunks[0]))]
+    cols = [layout.writers((0, 1, *chunk_window(grid_chunks[1], j, halo)[2:]))[1] for j in range(len(grid_chunks[1]))]
+    reads = _writer_tokens(staged.tokens, rows, cols)
+    name = staged.tokens.name.replace("match-", "despeckle-", 1)
+    fn = partial(_despeckled_task, level=staged.level, grid_chunks=grid_chunks)
+    return da.map_blocks(fn, *reads, chunks=((2,), *grid_chunks), new_axis=[0], dtype=np.float32,
+                         meta=np.empty((0, 0, 0), np.float32), name=name)
 
 
 def stage_reports(stage_dir: Path) -> dict[str, dict]:

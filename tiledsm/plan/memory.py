@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Sequence
 
 
 #: memory of a local dask worker process before its first large task, MiB:
@@ -209,18 +208,6 @@ def worker_baseline(match) -> int:
     return (WORKER_BASELINE_MIB + (CUDA_CONTEXT_MIB if on_cuda else 0)) * MIB
 
 
-def _largest_task(chunks: Sequence[int], params) -> int:
-    """Longest extent along an axis of the cells a matching task computes
-    (:func:`tiledsm.dsm.levels.task_window`)."""
-    from tiledsm.dsm.levels import task_window
-
-    best = 0
-    for index in range(len(chunks)):
-        _, _, lo, hi = task_window(tuple(chunks), index, params)
-        best = max(best, hi - lo)
-    return best
-
-
 def dsm_levels(views, grid, h_range: tuple[float, float], levels: int, params,
                itemsize: int | None = None) -> tuple[list[LevelPlan], MemoryEstimate]:
     """Sizes of every pyramid level of a DSM run and the worker memory of
@@ -259,8 +246,9 @@ def dsm_levels(views, grid, h_range: tuple[float, float], levels: int, params,
     for level in range(levels - 1, -1, -1):
         geom = level_geometry(views, grid, level, h_range, params, levels)
         g = geom.grid
-        chunks = level_layout(g.shape, grid.chunk, params)
-        task = tuple(_largest_task(ch, params) for ch in chunks)
+        layout = level_layout(geom, grid.chunk, params)
+        chunks = layout.chunks
+        task = layout.largest_task()
         full = math.ceil(span / geom.step - 1e-9) + 1
         nd = full if level == levels - 1 else min(full, fine_band)
         r0, c0 = (g.height - task[0]) // 2, (g.width - task[1]) // 2
