@@ -48,6 +48,7 @@ __all__ = [
     "shift_halo",
     "fit_deramp",
     "nmad",
+    "shifted_at",
 ]
 
 
@@ -145,6 +146,42 @@ def _shift_axis(a, offs, wts, axis, out):  # pragma: no cover - compiled
                     out[i, j] = term if k == 0 else out[i, j] + term
 
 
+def shifted_at(a: np.ndarray, index: np.ndarray, dy: float, dx: float, kernel: str = "cubic") -> np.ndarray:
+    """``shift_array(a, dy, dx, kernel).ravel()[index]`` computed at those
+    cells only (float32): the same taps, weights and order of additions,
+    so bit for bit the same values, at the cost of ``len(index)`` cells."""
+    oy, wy = _kernel_taps(dy, kernel)
+    ox, wx = _kernel_taps(dx, kernel)
+    ky, kx = wy != 0.0, wx != 0.0
+    out = np.empty(index.size, dtype=np.float64)
+    _shift_at(np.ascontiguousarray(a, dtype=np.float32), np.asarray(index, np.int64), oy[ky].astype(np.int64),
+              wy[ky].astype(np.float64), ox[kx].astype(np.int64), wx[kx].astype(np.float64), out)
+    return out.astype(np.float32)
+
+
+@numba.njit(nogil=True, cache=True)
+def _shift_at(a, index, oy, wy, ox, wx, out):  # pragma: no cover - compiled
+    """:func:`_shift_axis` along rows then columns, evaluated at the flat ``index`` cells."""
+    H, W = a.shape
+    for n in range(index.size):
+        i = index[n] // W
+        j = index[n] % W
+        acc = 0.0
+        for m in range(ox.size):
+            c = j + ox[m]
+            if 0 <= c < W:
+                v = 0.0
+                for k in range(oy.size):
+                    r = i + oy[k]
+                    term = wy[k] * (np.float64(a[r, c]) if 0 <= r < H else np.nan)
+                    v = term if k == 0 else v + term
+            else:
+                v = np.nan
+            term = wx[m] * v
+            acc = term if m == 0 else acc + term
+        out[n] = acc
+
+
 # --------------------------------------------------------------------------- parameters & result
 @dataclass(frozen=True)
 class CoregParams:
@@ -174,6 +211,12 @@ class CoregParams:
         Remove a least-squares plane (instead of the median) from ``dh``
         before each horizontal fit, so a tilt does not bias the shift; set
         by :class:`~tiledsm.compare.stage.CompareParams` ``deramp``.
+    max_samples : int
+        The horizontal fit's iterations use at most this many of the
+        candidate cells (stable, slope in range): an evenly strided subset,
+        as xdem subsamples; the shifted DSM is interpolated at those cells
+        only. 0: all of them. The median and NMAD before and after, and the
+        vertical bias, use every stable cell.
     """
 
     max_iterations: int = 10
@@ -186,12 +229,15 @@ class CoregParams:
     min_bin_count: int = 20
     shift_kernel: str = "cubic"
     deramp: bool = False
+    max_samples: int = 500_000
 
     def __post_init__(self):
         if self.vertical not in ("median", "mean"):
             raise CoregistrationError(f"CoregParams.vertical: {self.vertical!r} is not 'median' or 'mean'")
         if self.max_iterations < 1:
             raise CoregistrationError("CoregParams.max_iterations must be >= 1")
+        if self.max_samples < 0:
+            raise CoregistrationError("CoregParams.max_samples must be >= 0 (0: every candidate cell)")
         if not 0 <= self.min_slope_deg < self.max_slope_deg <= 90:
             raise CoregistrationError("CoregParams: need 0 <= min_slope_deg < max_slope_deg <= 90")
         _kernel_taps(0.5, self.shift_kernel)
@@ -319,24 +365,22 @@ def get_coreg(name: str) -> CoregFn:
 
 
 # --------------------------------------------------------------------------- fitting helpers
-def _samples(windows, shift, dz, params, terrain=None):
-    """Pool ``dh`` (and slope/aspect when ``terrain`` is given) of stable, valid cells."""
-    dhs, slopes, aspects, rows, cols = [], [], [], [], []
-    for k, w in enumerate(windows):
+def _samples(windows, shift, dz, params, with_position: bool = False):
+    """Pool ``dh`` of stable, valid cells (and their grid ``rows``, ``cols``
+    ``with_position``, else ``None``)."""
+    dhs, rows, cols = [], [], []
+    for w in windows:
         moved = w.other if shift == (0.0, 0.0) else shift_array(w.other, shift[0], shift[1], params.shift_kernel)
         dh = moved.astype(np.float64) + dz - w.ref
         ok = w.stable & np.isfinite(dh)
-        if terrain is not None:
-            slope, aspect = terrain[k]
-            ok &= np.isfinite(slope)
-            slopes.append(slope[ok])
-            aspects.append(aspect[ok])
         dhs.append(dh[ok])
-        r, c = np.nonzero(ok)
-        rows.append(r + w.row0)
-        cols.append(c + w.col0)
+        del dh
+        if with_position:
+            r, c = np.nonzero(ok)
+            rows.append(r + w.row0)
+            cols.append(c + w.col0)
     cat = lambda xs: np.concatenate(xs) if xs else np.empty(0)  # noqa: E731
-    return cat(dhs), cat(slopes), cat(aspects), cat(rows), cat(cols)
+    return cat(dhs), (cat(rows) if with_position else None), (cat(cols) if with_position else None)
 
 
 def _inliers(dh: np.ndarray, k: float) -> np.ndarray:
@@ -383,6 +427,63 @@ def fit_none(windows: list[FitWindow], params: CoregParams) -> Coregistration:
     return Coregistration("none", n_samples=int(dh.size), median_before=med, nmad_before=s, median_after=med, nmad_after=s)
 
 
+@dataclass(frozen=True)
+class _Candidates:
+    """The cells of one window that may enter the horizontal fit (stable,
+    slope within range), fixed across iterations: their flat indices, the
+    tangent of their slope and their aspect sector."""
+
+    index: np.ndarray
+    tan_slope: np.ndarray
+    sector: np.ndarray
+
+
+def _candidates(windows, params: CoregParams, edges: np.ndarray) -> list[_Candidates]:
+    """Per window, the stable cells within the slope range (slope and aspect of
+    the reference, :func:`slope_aspect`), every ``stride``-th of them when
+    there are more than ``params.max_samples``; the full-window slope and
+    aspect are dropped at once, so the fit holds a few numbers per sample."""
+    found = []
+    for w in windows:
+        slope, aspect = slope_aspect(w.ref, w.step_x, w.step_y)
+        index = np.flatnonzero(w.stable & (slope >= params.min_slope_deg) & (slope <= params.max_slope_deg))
+        found.append((index, slope.ravel()[index], aspect.ravel()[index]))
+        del slope, aspect
+    total = sum(f[0].size for f in found)
+    stride = max(1, -(-total // params.max_samples)) if params.max_samples else 1
+    out = []
+    for index, slope, aspect in found:
+        index, slope, aspect = index[::stride], slope[::stride], aspect[::stride]
+        sector = np.clip(np.digitize(aspect, edges) - 1, 0, params.aspect_bins - 1)
+        out.append(_Candidates(index, np.tan(np.deg2rad(slope)), sector.astype(np.int16)))
+    return out
+
+
+def _candidate_samples(windows, cands: list[_Candidates], shift, params: CoregParams, with_position: bool):
+    """``(dh, tan_slope, sector, rows, cols)`` of the candidates whose
+    ``dh = other(shifted) - ref`` is finite, pooled window by window in row-major
+    order (with every candidate: the cells, order and values of
+    :func:`_samples`); the shifted DSM is interpolated at the candidates only
+    (:func:`shifted_at`). ``rows``/``cols`` only ``with_position``, else ``None``."""
+    dhs, tans, sectors, rows, cols = [], [], [], [], []
+    for w, c in zip(windows, cands):
+        if shift == (0.0, 0.0):
+            moved = w.other.ravel()[c.index]
+        else:
+            moved = shifted_at(w.other, c.index, shift[0], shift[1], params.shift_kernel)
+        dh = moved.astype(np.float64) + 0.0 - w.ref.ravel()[c.index]
+        ok = np.isfinite(dh)
+        dhs.append(dh[ok])
+        tans.append(c.tan_slope[ok])
+        sectors.append(c.sector[ok])
+        if with_position:
+            r, col = np.divmod(c.index[ok], w.ref.shape[1])
+            rows.append(r + w.row0)
+            cols.append(col + w.col0)
+    cat = lambda xs: np.concatenate(xs) if xs else np.empty(0)  # noqa: E731
+    return cat(dhs), cat(tans), cat(sectors), (cat(rows) if with_position else None), (cat(cols) if with_position else None)
+
+
 @register_coreg("nuth_kaab")
 def fit_nuth_kaab(windows: list[FitWindow], params: CoregParams) -> Coregistration:
     """Nuth & Kääb (2011) iterative shift + vertical bias on stable terrain.
@@ -394,33 +495,33 @@ def fit_nuth_kaab(windows: list[FitWindow], params: CoregParams) -> Coregistrati
     ``a * cos(b - aspect) + c`` — linear in ``(a cos b, a sin b, c)``, solved
     by least squares. ``(a sin b, a cos b)`` is the remaining displacement of
     the other DSM (metres east, north), converted to pixels and subtracted.
-    Slope and aspect come from the reference DSM. The vertical bias is the
+    Slope and aspect come from the reference DSM: the candidate cells, their
+    slope's tangent and aspect sector are taken once (:func:`_candidates`),
+    so an iteration only shifts and differences. The vertical bias is the
     median (or mean) stable ``dh`` after the last shift.
     """
     p = params
-    terrain = [slope_aspect(w.ref, w.step_x, w.step_y) for w in windows]
     dh0, *_ = _samples(windows, (0.0, 0.0), 0.0, p)
     _require_samples(dh0.size, "co-registration")
     med0 = float(np.median(dh0))
     nmad0 = nmad(dh0)
+    del dh0
     sx, sy = _mean_steps(windows)
     dy_px = dx_px = 0.0
     history = []
     converged = False
     edges = np.linspace(0.0, 2 * np.pi, p.aspect_bins + 1)
     centres = 0.5 * (edges[:-1] + edges[1:])
+    cands = _candidates(windows, p, edges)
     it = 0
     for it in range(1, p.max_iterations + 1):
-        dh, slope, aspect, rows, cols = _samples(windows, (dy_px, dx_px), 0.0, p, terrain)
-        sel = (slope >= p.min_slope_deg) & (slope <= p.max_slope_deg)
-        dh, slope, aspect, rows, cols = dh[sel], slope[sel], aspect[sel], rows[sel], cols[sel]
+        dh, tan_slope, sector, rows, cols = _candidate_samples(windows, cands, (dy_px, dx_px), p, p.deramp)
         _require_samples(dh.size, "the Nuth & Kääb fit (slope range)")
         keep = _inliers(dh, p.nmad_k)
         # remove the current vertical bias (or plane) first: bias / tan(slope) is not a constant
         resid = dh[keep] - (_plane(dh[keep], rows[keep], cols[keep]) if p.deramp else np.median(dh[keep]))
-        target = resid / np.tan(np.deg2rad(slope[keep]))
-        asp = aspect[keep]
-        idx = np.clip(np.digitize(asp, edges) - 1, 0, p.aspect_bins - 1)
+        target = resid / tan_slope[keep]
+        idx = sector[keep]
         order = np.argsort(idx, kind="stable")
         idx_s, tgt_s = idx[order], target[order]
         starts = np.searchsorted(idx_s, np.arange(p.aspect_bins + 1))
@@ -446,6 +547,7 @@ def fit_nuth_kaab(windows: list[FitWindow], params: CoregParams) -> Coregistrati
         if math.hypot(d_col, d_row) < p.tolerance_px:
             converged = True
             break
+    del cands
     dh, *_ = _samples(windows, (dy_px, dx_px), 0.0, p)
     _require_samples(dh.size, "the vertical bias")
     inl = _inliers(dh, p.nmad_k)
@@ -474,7 +576,7 @@ def fit_deramp(windows: list[FitWindow], coreg: Coregistration, params: CoregPar
     (its shift applied); replaces ``coreg.dz``. ``origin`` is ``(r0, c0)``,
     normally the grid centre, so ``dz`` stays the offset there.
     """
-    dh, _, _, rows, cols = _samples(windows, (coreg.dy_px, coreg.dx_px), 0.0, params)
+    dh, rows, cols = _samples(windows, (coreg.dy_px, coreg.dx_px), 0.0, params, with_position=True)
     _require_samples(dh.size, "the deramp")
     rows, cols = rows - origin[0], cols - origin[1]
     keep = _inliers(dh + coreg.dz, params.nmad_k)
