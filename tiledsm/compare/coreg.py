@@ -29,9 +29,9 @@ import math
 from dataclasses import asdict, dataclass, field
 from typing import Callable
 
-import numba
 import numpy as np
 
+from tiledsm.compare.shift import ShiftKernelError, kernel_taps, shift_array, shift_halo, shifted_at
 from tiledsm.compare.terrain import slope_aspect
 from tiledsm.errors import TiledsmError
 
@@ -64,122 +64,6 @@ def nmad(values: np.ndarray) -> float:
     """Normalised median absolute deviation, ``1.4826 * median(|v - median(v)|)``."""
     v = np.asarray(values, dtype=np.float64)
     return float(1.4826 * np.median(np.abs(v - np.median(v))))
-
-
-# --------------------------------------------------------------------------- shifting
-def _kernel_taps(d: float, kernel: str) -> tuple[np.ndarray, np.ndarray]:
-    """Offsets ``o`` and weights ``w`` with ``out[i] = sum_k w_k in[i + o_k]`` = ``in(i - d)``."""
-    n = math.floor(d)
-    f = d - n
-    if abs(f) < 1e-12:
-        return np.array([-n]), np.array([1.0])
-    # sample position p = i - d = i - n - 1 + u with u = 1 - f in (0, 1)
-    u = 1.0 - f
-    base = -n - 1
-    if kernel == "linear":
-        return np.array([base, base + 1]), np.array([1.0 - u, u])
-    if kernel == "cubic":  # Keys (1981) cubic convolution, a = -0.5
-        a = -0.5
-
-        def w(t):
-            t = abs(t)
-            if t <= 1:
-                return (a + 2) * t**3 - (a + 3) * t**2 + 1
-            if t < 2:
-                return a * t**3 - 5 * a * t**2 + 8 * a * t - 4 * a
-            return 0.0
-
-        return np.array([base - 1, base, base + 1, base + 2]), np.array([w(u + 1), w(u), w(1 - u), w(2 - u)])
-    raise CoregistrationError(f"unknown shift kernel {kernel!r}: one of 'linear', 'cubic'")
-
-
-def shift_halo(dy: float, dx: float, kernel: str = "cubic") -> int:
-    """Halo (pixels) a block needs to be shifted by ``(dy, dx)`` on its own."""
-    oy, _ = _kernel_taps(dy, kernel)
-    ox, _ = _kernel_taps(dx, kernel)
-    return int(max(np.abs(oy).max(), np.abs(ox).max()))
-
-
-def shift_array(a: np.ndarray, dy: float, dx: float, kernel: str = "cubic") -> np.ndarray:
-    """Translate an image by a constant subpixel offset.
-
-    ``out[i, j] = a(i - dy, j - dx)`` (content moves ``+dy`` rows, ``+dx``
-    columns), interpolated separably with the given kernel ("cubic": Keys
-    cubic convolution a = -0.5; "linear"). Output cells whose support
-    touches a NaN or leaves the array are NaN. Integer shifts are exact.
-    Because the weights are the same for every cell, a block shifted with a
-    halo of :func:`shift_halo` pixels equals the same cells of the whole
-    array shifted (bit for bit).
-    """
-    out = np.ascontiguousarray(a, dtype=np.float64)
-    for axis, d in ((0, dy), (1, dx)):
-        offs, wts = _kernel_taps(d, kernel)
-        keep = wts != 0.0
-        res = np.empty(out.shape, dtype=np.float64)
-        _shift_axis(out, offs[keep].astype(np.int64), wts[keep].astype(np.float64), axis, res)
-        out = res
-    return out.astype(np.float32)
-
-
-@numba.njit(nogil=True, cache=True)
-def _shift_axis(a, offs, wts, axis, out):  # pragma: no cover - compiled
-    """``out[i, j] = sum_k wts[k] * a[(i, j) + offs[k] along axis]``, NaN outside ``a``.
-
-    The taps are added in order (``acc = w0 a0; acc = acc + w1 a1; ...``), the
-    operations of the array expression ``sum(w * shifted)``, so the result is
-    bit for bit the same as numpy's.
-    """
-    H, W = a.shape
-    for i in range(H):
-        for k in range(offs.size):
-            w = wts[k]
-            if axis == 0:
-                r = i + offs[k]
-                inside = 0 <= r < H
-                for j in range(W):
-                    term = w * (a[r, j] if inside else np.nan)
-                    out[i, j] = term if k == 0 else out[i, j] + term
-            else:
-                for j in range(W):
-                    c = j + offs[k]
-                    term = w * (a[i, c] if 0 <= c < W else np.nan)
-                    out[i, j] = term if k == 0 else out[i, j] + term
-
-
-def shifted_at(a: np.ndarray, index: np.ndarray, dy: float, dx: float, kernel: str = "cubic") -> np.ndarray:
-    """``shift_array(a, dy, dx, kernel).ravel()[index]`` computed at those
-    cells only (float32): the same taps, weights and order of additions,
-    so bit for bit the same values, at the cost of ``len(index)`` cells."""
-    oy, wy = _kernel_taps(dy, kernel)
-    ox, wx = _kernel_taps(dx, kernel)
-    ky, kx = wy != 0.0, wx != 0.0
-    out = np.empty(index.size, dtype=np.float64)
-    _shift_at(np.ascontiguousarray(a, dtype=np.float32), np.asarray(index, np.int64), oy[ky].astype(np.int64),
-              wy[ky].astype(np.float64), ox[kx].astype(np.int64), wx[kx].astype(np.float64), out)
-    return out.astype(np.float32)
-
-
-@numba.njit(nogil=True, cache=True)
-def _shift_at(a, index, oy, wy, ox, wx, out):  # pragma: no cover - compiled
-    """:func:`_shift_axis` along rows then columns, evaluated at the flat ``index`` cells."""
-    H, W = a.shape
-    for n in range(index.size):
-        i = index[n] // W
-        j = index[n] % W
-        acc = 0.0
-        for m in range(ox.size):
-            c = j + ox[m]
-            if 0 <= c < W:
-                v = 0.0
-                for k in range(oy.size):
-                    r = i + oy[k]
-                    term = wy[k] * (np.float64(a[r, c]) if 0 <= r < H else np.nan)
-                    v = term if k == 0 else v + term
-            else:
-                v = np.nan
-            term = wx[m] * v
-            acc = term if m == 0 else acc + term
-        out[n] = acc
 
 
 # --------------------------------------------------------------------------- parameters & result
@@ -240,7 +124,10 @@ class CoregParams:
             raise CoregistrationError("CoregParams.max_samples must be >= 0 (0: every candidate cell)")
         if not 0 <= self.min_slope_deg < self.max_slope_deg <= 90:
             raise CoregistrationError("CoregParams: need 0 <= min_slope_deg < max_slope_deg <= 90")
-        _kernel_taps(0.5, self.shift_kernel)
+        try:
+            kernel_taps(0.5, self.shift_kernel)
+        except ShiftKernelError as exc:
+            raise CoregistrationError(str(exc)) from None
 
 
 @dataclass(frozen=True)
@@ -438,6 +325,32 @@ class _Candidates:
     sector: np.ndarray
 
 
+def _strided(indices: list[np.ndarray], max_samples: int) -> list[np.ndarray]:
+    """Every ``stride``-th of the windows' flat ``indices`` (the same stride in
+    each window) so at most ~``max_samples`` remain; all of them with 0."""
+    total = sum(i.size for i in indices)
+    stride = max(1, -(-total // max_samples)) if max_samples else 1
+    return [i[::stride] for i in indices]
+
+
+def _dh_at(windows, indices: list[np.ndarray], shift, params: CoregParams) -> list[np.ndarray]:
+    """Per window, ``dh = other(shifted) - ref`` (float64) at its flat ``indices``
+    (the arithmetic of :func:`_samples`, NaN kept)."""
+    out = []
+    for w, index in zip(windows, indices):
+        if shift == (0.0, 0.0):
+            moved = w.other.ravel()[index]
+        else:
+            moved = shifted_at(w.other, index, shift[0], shift[1], params.shift_kernel)
+        out.append(moved.astype(np.float64) + 0.0 - w.ref.ravel()[index])
+    return out
+
+
+def _finite(dhs: list[np.ndarray]) -> np.ndarray:
+    """The finite values of ``dhs``, pooled in order."""
+    return np.concatenate([d[np.isfinite(d)] for d in dhs]) if dhs else np.empty(0)
+
+
 def _candidates(windows, params: CoregParams, edges: np.ndarray) -> list[_Candidates]:
     """Per window, the stable cells within the slope range (slope and aspect of
     the reference, :func:`slope_aspect`), every ``stride``-th of them when
@@ -449,11 +362,10 @@ def _candidates(windows, params: CoregParams, edges: np.ndarray) -> list[_Candid
         index = np.flatnonzero(w.stable & (slope >= params.min_slope_deg) & (slope <= params.max_slope_deg))
         found.append((index, slope.ravel()[index], aspect.ravel()[index]))
         del slope, aspect
-    total = sum(f[0].size for f in found)
-    stride = max(1, -(-total // params.max_samples)) if params.max_samples else 1
+    kept = _strided([np.arange(f[0].size) for f in found], params.max_samples)
     out = []
-    for index, slope, aspect in found:
-        index, slope, aspect = index[::stride], slope[::stride], aspect[::stride]
+    for (index, slope, aspect), k in zip(found, kept):
+        index, slope, aspect = index[k], slope[k], aspect[k]
         sector = np.clip(np.digitize(aspect, edges) - 1, 0, params.aspect_bins - 1)
         out.append(_Candidates(index, np.tan(np.deg2rad(slope)), sector.astype(np.int16)))
     return out
@@ -466,12 +378,7 @@ def _candidate_samples(windows, cands: list[_Candidates], shift, params: CoregPa
     :func:`_samples`); the shifted DSM is interpolated at the candidates only
     (:func:`shifted_at`). ``rows``/``cols`` only ``with_position``, else ``None``."""
     dhs, tans, sectors, rows, cols = [], [], [], [], []
-    for w, c in zip(windows, cands):
-        if shift == (0.0, 0.0):
-            moved = w.other.ravel()[c.index]
-        else:
-            moved = shifted_at(w.other, c.index, shift[0], shift[1], params.shift_kernel)
-        dh = moved.astype(np.float64) + 0.0 - w.ref.ravel()[c.index]
+    for w, c, dh in zip(windows, cands, _dh_at(windows, [c.index for c in cands], shift, params)):
         ok = np.isfinite(dh)
         dhs.append(dh[ok])
         tans.append(c.tan_slope[ok])
@@ -501,7 +408,10 @@ def fit_nuth_kaab(windows: list[FitWindow], params: CoregParams) -> Coregistrati
     median (or mean) stable ``dh`` after the last shift.
     """
     p = params
-    dh0, *_ = _samples(windows, (0.0, 0.0), 0.0, p)
+    # every stable cell, not a subsample: on integer heights (SRTM) the NMAD of a subsample can jump by a
+    # whole metre, and the outlier rule of the stable terrain (k x NMAD) with it
+    stable = [np.flatnonzero(w.stable) for w in windows]
+    dh0 = _finite(_dh_at(windows, stable, (0.0, 0.0), p))
     _require_samples(dh0.size, "co-registration")
     med0 = float(np.median(dh0))
     nmad0 = nmad(dh0)
@@ -548,7 +458,7 @@ def fit_nuth_kaab(windows: list[FitWindow], params: CoregParams) -> Coregistrati
             converged = True
             break
     del cands
-    dh, *_ = _samples(windows, (dy_px, dx_px), 0.0, p)
+    dh = _finite(_dh_at(windows, stable, (dy_px, dx_px), p))
     _require_samples(dh.size, "the vertical bias")
     inl = _inliers(dh, p.nmad_k)
     dz = -_vertical(dh[inl], p) + 0.0
