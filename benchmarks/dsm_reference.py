@@ -132,6 +132,11 @@ def summarise(rows: list[dict]) -> dict:
         }
     a, b = out["with"]["largest_process_mib_median"], out["without"]["largest_process_mib_median"]
     out["largest_process_ratio"] = a / b if a and b else None
+    # each pair's own ratio: the two runs of a pair share the machine's load, which moves the DSM's own peak
+    pairs = {}
+    for r in rows:
+        pairs.setdefault(r.get("pair"), {})[r["reference"]] = r["measurement"]["peak_single_rss_mib"]
+    out["pair_ratios"] = [p[True] / p[False] for _, p in sorted(pairs.items()) if p.get(True) and p.get(False)]
     return out
 
 
