@@ -28,7 +28,7 @@ import xarray as xr
 from tiledsm.compare.align import AlignedPair, align_dsms, open_dsm
 from tiledsm.compare.stats import HistogramStats
 
-__all__ = ["reference_accuracy"]
+__all__ = ["reference_accuracy", "grid_statistics"]
 
 #: at most this many cells of the grid are loaded for the co-registration fit, in windows of this edge
 FIT_CELLS = 1_000_000
@@ -126,6 +126,17 @@ def reference_accuracy(
     difference = pair.ref.copy(data=d)
     difference.attrs = {"long_name": "DSM - reference", "units": "m", "window": tuple(pair.ref_window)}
     return stats, difference
+
+
+def grid_statistics(d: da.Array, reference: da.Array, keep: da.Array | None = None, bins: int = 2**18) -> dict:
+    """Statistics of the differences ``d`` (metres, NaN = no height) where
+    ``reference`` has a height and ``keep`` holds, chunk by chunk (``d``,
+    ``reference`` and ``keep`` share their chunks): the keys of
+    :func:`tiledsm.compare.stats.difference_statistics`; counts and
+    moments exact, median and NMAD within two bins of ``range(d) / bins``.
+    Two passes over the inputs (range, then histograms)."""
+    keep = da.ones_like(reference, dtype=bool) if keep is None else keep
+    return _statistics([(d, reference)], keep, bins)[0]
 
 
 def _statistics(diffs: list[tuple[da.Array, da.Array]], keep: da.Array, bins: int) -> list[dict]:

@@ -29,7 +29,7 @@ from affine import Affine
 
 from tiledsm.errors import GridError, InputFileError, NoOverlapError
 
-__all__ = ["open_dsm", "align_dsms", "AlignedPair", "ReferenceGrid", "dsm_name"]
+__all__ = ["open_dsm", "align_dsms", "onto_grid", "AlignedPair", "ReferenceGrid", "dsm_name"]
 
 _EPS = 1e-6  # pixel tolerance when deciding two grids share a pixel phase
 
@@ -245,6 +245,44 @@ def align_dsms(ref: xr.DataArray, other: xr.DataArray, chunks: int = 1024, resam
         odata = _warp_lazy(_as_dask(other).data, ot, ocrs, gt, rcrs, ref_data.chunks, method)
     other_al = _grid_array(odata, gt, rcrs, "other", oname)
     return AlignedPair(ref_al, other_al, rcrs, gt, (row0, row1, col0, col1), not same_phase)
+
+
+def onto_grid(src: xr.DataArray, like: xr.DataArray, resampling: str = "bilinear") -> xr.DataArray:
+    """``src`` on the whole grid of ``like`` (its CRS, transform, shape and
+    chunks), lazily: sliced when it shares ``like``'s CRS, cell size and
+    pixel phase, else resampled block by block (:func:`align_dsms`'s
+    warper: each task reads the source window its block needs). Cells
+    ``src`` does not cover are NaN. float32; ``like`` in memory gives one
+    block.
+
+    Raises
+    ------
+    GridError
+        Unknown ``resampling`` name, rotated or degenerate geotransform.
+    """
+    import rioxarray  # noqa: F401
+    from rasterio.enums import Resampling
+
+    st, gt = check_grid(src), check_grid(like)
+    scrs, dcrs = src.rio.crs, like.rio.crs
+    h, w = like.shape
+    chunks = like.data.chunks if isinstance(like.data, da.Array) else ((h,), (w,))
+    data = _as_dask(src).data
+    same_phase = False
+    if scrs == dcrs and abs(st.a - gt.a) < _EPS * abs(gt.a) and abs(st.e - gt.e) < _EPS * abs(gt.e):
+        oc, orr = (~st) @ (gt.c, gt.f)  # like's origin in src's pixels
+        same_phase = abs(oc - round(oc)) < _EPS and abs(orr - round(orr)) < _EPS
+    if same_phase:
+        out = _slice_padded(data, int(round(orr)), int(round(oc)), h, w).rechunk(chunks)
+    else:
+        try:
+            method = Resampling[resampling]
+        except KeyError:
+            raise GridError(f"unknown resampling {resampling!r}; one of {[m.name for m in Resampling]}") from None
+        out = _warp_lazy(data, st, scrs, gt, dcrs, chunks, method)
+    arr = xr.DataArray(out, dims=("y", "x"), coords={"y": like.y, "x": like.x}, name=src.name,
+                       attrs={"source": dsm_name(src)})
+    return arr.rio.write_crs(dcrs).rio.write_transform(gt)
 
 
 def _as_dask(arr: xr.DataArray) -> xr.DataArray:

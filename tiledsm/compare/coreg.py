@@ -29,9 +29,9 @@ import math
 from dataclasses import asdict, dataclass, field
 from typing import Callable
 
-import numba
 import numpy as np
 
+from tiledsm.compare.shift import ShiftKernelError, kernel_taps, shift_array, shift_halo, shifted_at
 from tiledsm.compare.terrain import slope_aspect
 from tiledsm.errors import TiledsmError
 
@@ -48,6 +48,7 @@ __all__ = [
     "shift_halo",
     "fit_deramp",
     "nmad",
+    "shifted_at",
 ]
 
 
@@ -63,86 +64,6 @@ def nmad(values: np.ndarray) -> float:
     """Normalised median absolute deviation, ``1.4826 * median(|v - median(v)|)``."""
     v = np.asarray(values, dtype=np.float64)
     return float(1.4826 * np.median(np.abs(v - np.median(v))))
-
-
-# --------------------------------------------------------------------------- shifting
-def _kernel_taps(d: float, kernel: str) -> tuple[np.ndarray, np.ndarray]:
-    """Offsets ``o`` and weights ``w`` with ``out[i] = sum_k w_k in[i + o_k]`` = ``in(i - d)``."""
-    n = math.floor(d)
-    f = d - n
-    if abs(f) < 1e-12:
-        return np.array([-n]), np.array([1.0])
-    # sample position p = i - d = i - n - 1 + u with u = 1 - f in (0, 1)
-    u = 1.0 - f
-    base = -n - 1
-    if kernel == "linear":
-        return np.array([base, base + 1]), np.array([1.0 - u, u])
-    if kernel == "cubic":  # Keys (1981) cubic convolution, a = -0.5
-        a = -0.5
-
-        def w(t):
-            t = abs(t)
-            if t <= 1:
-                return (a + 2) * t**3 - (a + 3) * t**2 + 1
-            if t < 2:
-                return a * t**3 - 5 * a * t**2 + 8 * a * t - 4 * a
-            return 0.0
-
-        return np.array([base - 1, base, base + 1, base + 2]), np.array([w(u + 1), w(u), w(1 - u), w(2 - u)])
-    raise CoregistrationError(f"unknown shift kernel {kernel!r}: one of 'linear', 'cubic'")
-
-
-def shift_halo(dy: float, dx: float, kernel: str = "cubic") -> int:
-    """Halo (pixels) a block needs to be shifted by ``(dy, dx)`` on its own."""
-    oy, _ = _kernel_taps(dy, kernel)
-    ox, _ = _kernel_taps(dx, kernel)
-    return int(max(np.abs(oy).max(), np.abs(ox).max()))
-
-
-def shift_array(a: np.ndarray, dy: float, dx: float, kernel: str = "cubic") -> np.ndarray:
-    """Translate an image by a constant subpixel offset.
-
-    ``out[i, j] = a(i - dy, j - dx)`` (content moves ``+dy`` rows, ``+dx``
-    columns), interpolated separably with the given kernel ("cubic": Keys
-    cubic convolution a = -0.5; "linear"). Output cells whose support
-    touches a NaN or leaves the array are NaN. Integer shifts are exact.
-    Because the weights are the same for every cell, a block shifted with a
-    halo of :func:`shift_halo` pixels equals the same cells of the whole
-    array shifted (bit for bit).
-    """
-    out = np.ascontiguousarray(a, dtype=np.float64)
-    for axis, d in ((0, dy), (1, dx)):
-        offs, wts = _kernel_taps(d, kernel)
-        keep = wts != 0.0
-        res = np.empty(out.shape, dtype=np.float64)
-        _shift_axis(out, offs[keep].astype(np.int64), wts[keep].astype(np.float64), axis, res)
-        out = res
-    return out.astype(np.float32)
-
-
-@numba.njit(nogil=True, cache=True)
-def _shift_axis(a, offs, wts, axis, out):  # pragma: no cover - compiled
-    """``out[i, j] = sum_k wts[k] * a[(i, j) + offs[k] along axis]``, NaN outside ``a``.
-
-    The taps are added in order (``acc = w0 a0; acc = acc + w1 a1; ...``), the
-    operations of the array expression ``sum(w * shifted)``, so the result is
-    bit for bit the same as numpy's.
-    """
-    H, W = a.shape
-    for i in range(H):
-        for k in range(offs.size):
-            w = wts[k]
-            if axis == 0:
-                r = i + offs[k]
-                inside = 0 <= r < H
-                for j in range(W):
-                    term = w * (a[r, j] if inside else np.nan)
-                    out[i, j] = term if k == 0 else out[i, j] + term
-            else:
-                for j in range(W):
-                    c = j + offs[k]
-                    term = w * (a[i, c] if 0 <= c < W else np.nan)
-                    out[i, j] = term if k == 0 else out[i, j] + term
 
 
 # --------------------------------------------------------------------------- parameters & result
@@ -174,6 +95,12 @@ class CoregParams:
         Remove a least-squares plane (instead of the median) from ``dh``
         before each horizontal fit, so a tilt does not bias the shift; set
         by :class:`~tiledsm.compare.stage.CompareParams` ``deramp``.
+    max_samples : int
+        The horizontal fit's iterations use at most this many of the
+        candidate cells (stable, slope in range): an evenly strided subset,
+        as xdem subsamples; the shifted DSM is interpolated at those cells
+        only. 0: all of them. The median and NMAD before and after, and the
+        vertical bias, use every stable cell.
     """
 
     max_iterations: int = 10
@@ -186,15 +113,21 @@ class CoregParams:
     min_bin_count: int = 20
     shift_kernel: str = "cubic"
     deramp: bool = False
+    max_samples: int = 500_000
 
     def __post_init__(self):
         if self.vertical not in ("median", "mean"):
             raise CoregistrationError(f"CoregParams.vertical: {self.vertical!r} is not 'median' or 'mean'")
         if self.max_iterations < 1:
             raise CoregistrationError("CoregParams.max_iterations must be >= 1")
+        if self.max_samples < 0:
+            raise CoregistrationError("CoregParams.max_samples must be >= 0 (0: every candidate cell)")
         if not 0 <= self.min_slope_deg < self.max_slope_deg <= 90:
             raise CoregistrationError("CoregParams: need 0 <= min_slope_deg < max_slope_deg <= 90")
-        _kernel_taps(0.5, self.shift_kernel)
+        try:
+            kernel_taps(0.5, self.shift_kernel)
+        except ShiftKernelError as exc:
+            raise CoregistrationError(str(exc)) from None
 
 
 @dataclass(frozen=True)
@@ -319,24 +252,22 @@ def get_coreg(name: str) -> CoregFn:
 
 
 # --------------------------------------------------------------------------- fitting helpers
-def _samples(windows, shift, dz, params, terrain=None):
-    """Pool ``dh`` (and slope/aspect when ``terrain`` is given) of stable, valid cells."""
-    dhs, slopes, aspects, rows, cols = [], [], [], [], []
-    for k, w in enumerate(windows):
+def _samples(windows, shift, dz, params, with_position: bool = False):
+    """Pool ``dh`` of stable, valid cells (and their grid ``rows``, ``cols``
+    ``with_position``, else ``None``)."""
+    dhs, rows, cols = [], [], []
+    for w in windows:
         moved = w.other if shift == (0.0, 0.0) else shift_array(w.other, shift[0], shift[1], params.shift_kernel)
         dh = moved.astype(np.float64) + dz - w.ref
         ok = w.stable & np.isfinite(dh)
-        if terrain is not None:
-            slope, aspect = terrain[k]
-            ok &= np.isfinite(slope)
-            slopes.append(slope[ok])
-            aspects.append(aspect[ok])
         dhs.append(dh[ok])
-        r, c = np.nonzero(ok)
-        rows.append(r + w.row0)
-        cols.append(c + w.col0)
+        del dh
+        if with_position:
+            r, c = np.nonzero(ok)
+            rows.append(r + w.row0)
+            cols.append(c + w.col0)
     cat = lambda xs: np.concatenate(xs) if xs else np.empty(0)  # noqa: E731
-    return cat(dhs), cat(slopes), cat(aspects), cat(rows), cat(cols)
+    return cat(dhs), (cat(rows) if with_position else None), (cat(cols) if with_position else None)
 
 
 def _inliers(dh: np.ndarray, k: float) -> np.ndarray:
@@ -383,6 +314,83 @@ def fit_none(windows: list[FitWindow], params: CoregParams) -> Coregistration:
     return Coregistration("none", n_samples=int(dh.size), median_before=med, nmad_before=s, median_after=med, nmad_after=s)
 
 
+@dataclass(frozen=True)
+class _Candidates:
+    """The cells of one window that may enter the horizontal fit (stable,
+    slope within range), fixed across iterations: their flat indices, the
+    tangent of their slope and their aspect sector."""
+
+    index: np.ndarray
+    tan_slope: np.ndarray
+    sector: np.ndarray
+
+
+def _strided(indices: list[np.ndarray], max_samples: int) -> list[np.ndarray]:
+    """Every ``stride``-th of the windows' flat ``indices`` (the same stride in
+    each window) so at most ~``max_samples`` remain; all of them with 0."""
+    total = sum(i.size for i in indices)
+    stride = max(1, -(-total // max_samples)) if max_samples else 1
+    return [i[::stride] for i in indices]
+
+
+def _dh_at(windows, indices: list[np.ndarray], shift, params: CoregParams) -> list[np.ndarray]:
+    """Per window, ``dh = other(shifted) - ref`` (float64) at its flat ``indices``
+    (the arithmetic of :func:`_samples`, NaN kept)."""
+    out = []
+    for w, index in zip(windows, indices):
+        if shift == (0.0, 0.0):
+            moved = w.other.ravel()[index]
+        else:
+            moved = shifted_at(w.other, index, shift[0], shift[1], params.shift_kernel)
+        out.append(moved.astype(np.float64) + 0.0 - w.ref.ravel()[index])
+    return out
+
+
+def _finite(dhs: list[np.ndarray]) -> np.ndarray:
+    """The finite values of ``dhs``, pooled in order."""
+    return np.concatenate([d[np.isfinite(d)] for d in dhs]) if dhs else np.empty(0)
+
+
+def _candidates(windows, params: CoregParams, edges: np.ndarray) -> list[_Candidates]:
+    """Per window, the stable cells within the slope range (slope and aspect of
+    the reference, :func:`slope_aspect`), every ``stride``-th of them when
+    there are more than ``params.max_samples``; the full-window slope and
+    aspect are dropped at once, so the fit holds a few numbers per sample."""
+    found = []
+    for w in windows:
+        slope, aspect = slope_aspect(w.ref, w.step_x, w.step_y)
+        index = np.flatnonzero(w.stable & (slope >= params.min_slope_deg) & (slope <= params.max_slope_deg))
+        found.append((index, slope.ravel()[index], aspect.ravel()[index]))
+        del slope, aspect
+    kept = _strided([np.arange(f[0].size) for f in found], params.max_samples)
+    out = []
+    for (index, slope, aspect), k in zip(found, kept):
+        index, slope, aspect = index[k], slope[k], aspect[k]
+        sector = np.clip(np.digitize(aspect, edges) - 1, 0, params.aspect_bins - 1)
+        out.append(_Candidates(index, np.tan(np.deg2rad(slope)), sector.astype(np.int16)))
+    return out
+
+
+def _candidate_samples(windows, cands: list[_Candidates], shift, params: CoregParams, with_position: bool):
+    """``(dh, tan_slope, sector, rows, cols)`` of the candidates whose
+    ``dh = other(shifted) - ref`` is finite, pooled window by window in row-major
+    order (with every candidate: the cells, order and values of
+    :func:`_samples`); the shifted DSM is interpolated at the candidates only
+    (:func:`shifted_at`). ``rows``/``cols`` only ``with_position``, else ``None``."""
+    dhs, tans, sectors, rows, cols = [], [], [], [], []
+    for w, c, dh in zip(windows, cands, _dh_at(windows, [c.index for c in cands], shift, params)):
+        ok = np.isfinite(dh)
+        dhs.append(dh[ok])
+        tans.append(c.tan_slope[ok])
+        sectors.append(c.sector[ok])
+        if with_position:
+            r, col = np.divmod(c.index[ok], w.ref.shape[1])
+            rows.append(r + w.row0)
+            cols.append(col + w.col0)
+    cat = lambda xs: np.concatenate(xs) if xs else np.empty(0)  # noqa: E731
+    return cat(dhs), cat(tans), cat(sectors), (cat(rows) if with_position else None), (cat(cols) if with_position else None)
+
+
 @register_coreg("nuth_kaab")
 def fit_nuth_kaab(windows: list[FitWindow], params: CoregParams) -> Coregistration:
     """Nuth & Kääb (2011) iterative shift + vertical bias on stable terrain.
@@ -394,33 +402,36 @@ def fit_nuth_kaab(windows: list[FitWindow], params: CoregParams) -> Coregistrati
     ``a * cos(b - aspect) + c`` — linear in ``(a cos b, a sin b, c)``, solved
     by least squares. ``(a sin b, a cos b)`` is the remaining displacement of
     the other DSM (metres east, north), converted to pixels and subtracted.
-    Slope and aspect come from the reference DSM. The vertical bias is the
+    Slope and aspect come from the reference DSM: the candidate cells, their
+    slope's tangent and aspect sector are taken once (:func:`_candidates`),
+    so an iteration only shifts and differences. The vertical bias is the
     median (or mean) stable ``dh`` after the last shift.
     """
     p = params
-    terrain = [slope_aspect(w.ref, w.step_x, w.step_y) for w in windows]
-    dh0, *_ = _samples(windows, (0.0, 0.0), 0.0, p)
+    # every stable cell, not a subsample: on integer heights (SRTM) the NMAD of a subsample can jump by a
+    # whole metre, and the outlier rule of the stable terrain (k x NMAD) with it
+    stable = [np.flatnonzero(w.stable) for w in windows]
+    dh0 = _finite(_dh_at(windows, stable, (0.0, 0.0), p))
     _require_samples(dh0.size, "co-registration")
     med0 = float(np.median(dh0))
     nmad0 = nmad(dh0)
+    del dh0
     sx, sy = _mean_steps(windows)
     dy_px = dx_px = 0.0
     history = []
     converged = False
     edges = np.linspace(0.0, 2 * np.pi, p.aspect_bins + 1)
     centres = 0.5 * (edges[:-1] + edges[1:])
+    cands = _candidates(windows, p, edges)
     it = 0
     for it in range(1, p.max_iterations + 1):
-        dh, slope, aspect, rows, cols = _samples(windows, (dy_px, dx_px), 0.0, p, terrain)
-        sel = (slope >= p.min_slope_deg) & (slope <= p.max_slope_deg)
-        dh, slope, aspect, rows, cols = dh[sel], slope[sel], aspect[sel], rows[sel], cols[sel]
+        dh, tan_slope, sector, rows, cols = _candidate_samples(windows, cands, (dy_px, dx_px), p, p.deramp)
         _require_samples(dh.size, "the Nuth & Kääb fit (slope range)")
         keep = _inliers(dh, p.nmad_k)
         # remove the current vertical bias (or plane) first: bias / tan(slope) is not a constant
         resid = dh[keep] - (_plane(dh[keep], rows[keep], cols[keep]) if p.deramp else np.median(dh[keep]))
-        target = resid / np.tan(np.deg2rad(slope[keep]))
-        asp = aspect[keep]
-        idx = np.clip(np.digitize(asp, edges) - 1, 0, p.aspect_bins - 1)
+        target = resid / tan_slope[keep]
+        idx = sector[keep]
         order = np.argsort(idx, kind="stable")
         idx_s, tgt_s = idx[order], target[order]
         starts = np.searchsorted(idx_s, np.arange(p.aspect_bins + 1))
@@ -446,7 +457,8 @@ def fit_nuth_kaab(windows: list[FitWindow], params: CoregParams) -> Coregistrati
         if math.hypot(d_col, d_row) < p.tolerance_px:
             converged = True
             break
-    dh, *_ = _samples(windows, (dy_px, dx_px), 0.0, p)
+    del cands
+    dh = _finite(_dh_at(windows, stable, (dy_px, dx_px), p))
     _require_samples(dh.size, "the vertical bias")
     inl = _inliers(dh, p.nmad_k)
     dz = -_vertical(dh[inl], p) + 0.0
@@ -474,7 +486,7 @@ def fit_deramp(windows: list[FitWindow], coreg: Coregistration, params: CoregPar
     (its shift applied); replaces ``coreg.dz``. ``origin`` is ``(r0, c0)``,
     normally the grid centre, so ``dz`` stays the offset there.
     """
-    dh, _, _, rows, cols = _samples(windows, (coreg.dy_px, coreg.dx_px), 0.0, params)
+    dh, rows, cols = _samples(windows, (coreg.dy_px, coreg.dx_px), 0.0, params, with_position=True)
     _require_samples(dh.size, "the deramp")
     rows, cols = rows - origin[0], cols - origin[1]
     keep = _inliers(dh + coreg.dz, params.nmad_k)

@@ -69,29 +69,46 @@ def dsm_metrics(height: xr.DataArray, reference: xr.DataArray, mask: xr.DataArra
 
     ``mask`` (True = evaluate) restricts the cells, e.g. to visible ground.
     Completeness is the fraction of evaluated cells that have a height.
+
+    In memory (numpy-backed arrays), the statistics are exact
+    (:func:`tiledsm.compare.stats.difference_statistics`). When any
+    argument is dask-backed they stream chunk by chunk (the chunks of the
+    first dask-backed one; :func:`tiledsm.compare.accuracy.grid_statistics`),
+    so no process holds the grid: counts and moments are exact, median and
+    NMAD within two histogram bins (bin = the differences' range / 2**18).
     """
+    import dask.array as da
+
+    lazy = [a for a in (height, reference, mask) if isinstance(getattr(a, "data", None), da.Array)]
+    if lazy:
+        from tiledsm.compare.accuracy import grid_statistics
+
+        chunks = lazy[0].data.chunks
+        h, ref = (da.asarray(getattr(a, "data", a)).rechunk(chunks) for a in (height, reference))
+        keep = None if mask is None else da.asarray(getattr(mask, "data", mask)).astype(bool).rechunk(chunks)
+        return grid_statistics(h.astype(np.float64) - ref.astype(np.float64), ref, keep)
     from tiledsm.compare.stats import difference_statistics
 
-    ref = reference.values.astype(np.float64)
-    h = height.values.astype(np.float64)
+    ref = np.asarray(reference, dtype=np.float64)
+    h = np.asarray(height, dtype=np.float64)
     sel = np.isfinite(ref)
     if mask is not None:
         sel &= np.asarray(mask, bool)
-    stats = difference_statistics(h[sel] - ref[sel], reference=ref[sel])
-    return stats
+    return difference_statistics(h[sel] - ref[sel], reference=ref[sel])
 
 
 def reference_on_grid(path: str | Path, like: xr.DataArray, resampling: str = "bilinear") -> xr.DataArray:
-    """A reference raster on the grid of ``like``: as is when it shares it,
-    else resampled (``resampling``: a ``rasterio.enums.Resampling`` name;
-    ``"nearest"`` for masks and labels)."""
-    import rioxarray  # noqa: F401  (registers .rio)
-    from rasterio.enums import Resampling
+    """A reference raster on the grid of ``like``, lazily, with ``like``'s
+    chunks (one block when ``like`` is in memory): sliced when it shares
+    the grid, else resampled chunk by chunk, each task reading only the
+    window of the file its chunk needs (``resampling``: a
+    ``rasterio.enums.Resampling`` name; ``"nearest"`` for masks and
+    labels). float32, NaN where the file has no value or does not reach.
+    ``.values`` loads it; dask reductions stream it."""
+    from tiledsm.compare.align import onto_grid, open_dsm
 
-    ref = xr.open_dataarray(path, engine="rasterio", mask_and_scale=True).squeeze("band", drop=True)
-    if ref.rio.crs == like.rio.crs and ref.shape == like.shape and np.allclose(ref.rio.transform(), like.rio.transform()):
-        return ref.assign_coords(x=like.x, y=like.y)
-    return ref.rio.reproject_match(like, resampling=Resampling[resampling])
+    chunk = max(like.data.chunks[0]) if like.chunks else 1024
+    return onto_grid(open_dsm(path, chunk), like, resampling)
 
 
 def write_dsm_products(

@@ -75,9 +75,8 @@ def run_dsm(
     scores: dict = {}
     warnings = list(plan.warnings)
 
-    def score() -> None:
-        """Completeness and the metrics against the reference, read from
-        the finished store while its exports are written."""
+    def score_completeness() -> None:
+        """Completeness, read from the finished store while its exports are written."""
         from tiledsm.io import open_product
 
         height = open_product(out / "dsm.zarr")["height"]
@@ -89,28 +88,43 @@ def run_dsm(
                 f"a height (expected >= {LOW_COMPLETENESS:.0%}; check the height range and the images' overlap)"
             )
             log.warning(warnings[-1])
-        if reference:
-            # chunk by chunk: the client never holds the whole DSM or reference
-            from tiledsm.compare.accuracy import reference_accuracy
 
-            scores["reference"] = str(reference)
-            scores["vs_reference"], error = reference_accuracy(height, reference, chunks=grid_chunk(height),
-                                                               coregister=True)
-            if recipe.output.quicklook:
-                from tiledsm.quicklook import quicklook
+    def score_reference() -> None:
+        """The metrics against the reference, chunk by chunk from the
+        finished store (the client never holds the whole DSM or reference),
+        once the exports are written (run beside them, the fit's windows and
+        the histograms added to the COG's memory), on as many threads of
+        this process as the run has workers (not one per core: each thread
+        holds its chunks and partial histograms)."""
+        from tiledsm.compare.accuracy import reference_accuracy
+        from tiledsm.io import open_product
 
-                r0, r1, c0, c1 = error.attrs["window"]
-                quicklook(error, out / "dsm_error.png", kind="difference", title="DSM - reference (m)",
-                          dsm=height[r0:r1, c0:c1])
-            if truth_mask is not None:
-                scores["vs_reference_visible"], _ = reference_accuracy(
-                    height, reference, truth_mask, chunks=grid_chunk(height)
-                )
+        height = open_product(out / "dsm.zarr")["height"]
+        scores["reference"] = str(reference)
+        scores["vs_reference"], error = reference_accuracy(height, reference, chunks=grid_chunk(height),
+                                                           coregister=True)
+        if recipe.output.quicklook:
+            from tiledsm.quicklook import quicklook
+
+            r0, r1, c0, c1 = error.attrs["window"]
+            quicklook(error, out / "dsm_error.png", kind="difference", title="DSM - reference (m)",
+                      dsm=height[r0:r1, c0:c1])
+        if truth_mask is not None:
+            scores["vs_reference_visible"], _ = reference_accuracy(
+                height, reference, truth_mask, chunks=grid_chunk(height)
+            )
 
     timings = write_dsm_products(
         prep.ds, out, cluster=cluster, cog=recipe.output.cog, quicklook=recipe.output.quicklook, overwrite=overwrite,
-        alongside=score,
+        alongside=score_completeness,
     )
+    if reference:
+        import dask
+
+        t_score = time.perf_counter()
+        with dask.config.set(scheduler="threads", num_workers=cluster.local_workers):
+            score_reference()
+        timings["score_s"] = time.perf_counter() - t_score
     metrics: dict = {"pipeline": "dsm", "report": report, "timings": timings}
     if orient_doc is not None:
         metrics["orient"] = orient_doc
