@@ -207,23 +207,22 @@ def _bicubic_many(img, ys, xs, out, iy, ix, wy, wx):
         out[k] = cubic_sum(img, r, ix[k], wy[0, k], wy[1, k], wy[2, k], wy[3, k], wx[0, k], wx[1, k], wx[2, k], wx[3, k])
 
 
-@nb.njit(nogil=True, cache=True, error_model="numpy")
+# The row kernels below and their driver (_sweep) are compiled without the
+# runtime's reference counting (_nrt=False, as tiledsm.match.paths._pass_fast):
+# they allocate nothing (_sweep_scratch does), and a narrow band's cells make
+# many short array views (a dozen per cell and view), each an atomic
+# increment and decrement with it.
+@nb.njit(nogil=True, cache=True, error_model="numpy", _nrt=False)
 def _sample_row(img, lat_r, lat_c, stride, k0, dh, href, step, gi0, gj0, n0i, n0j, win_r, win_c, cubic, r,
-                lo, hi, out):
+                lo, hi, out, yb, xb, iyb, ixb, wyb, wxb):
     """Samples of one view at the cells of block row ``r``: ``out[j, k]``
     at label ``lo[r, j] + k`` for the labels ``lo[r, j]..hi[r, j]``
-    (:func:`sample_hull`), at heights ``href[r, j] + label * step``."""
+    (:func:`sample_hull`), at heights ``href[r, j] + label * step``.
+    ``yb, xb`` (float64), ``iyb, ixb`` (int64) ``(ns,)`` and ``wyb, wxb``
+    ``(4, ns)``: scratch of a line's positions, pixels and kernel weights."""
     _, gy, gx = lat_r.shape
     h, w = img.shape
     nx = href.shape[1]
-    ns = out.shape[1]
-    yb = np.empty(ns)
-    xb = np.empty(ns)
-    # _bicubic_many's scratch: pixels and kernel weights of a line's samples
-    iyb = np.empty(ns, np.int64)
-    ixb = np.empty(ns, np.int64)
-    wyb = np.empty((4, ns))
-    wxb = np.empty((4, ns))
     i0, fy = lattice_cell(gi0 + r, stride, n0i, gy)
     for j in range(nx):
         l0 = lo[r, j]
@@ -298,12 +297,14 @@ def _column_sums(ring, i, half, c, cb, m, lo, pair_u, pair_v, out):
 # patch) has a zero deviation; its NaN is turned into an invalid cost by
 # _zncc's select, where numba's default Python model raised
 # ZeroDivisionError (and kept a branch in every division of the loop).
-@nb.njit(nogil=True, cache=True, error_model="numpy")
-def _zncc_row(ring, i, half, lo, base, nvalid, pair_u, pair_v, pair_w, eps, vol):
+@nb.njit(nogil=True, cache=True, error_model="numpy", _nrt=False)
+def _zncc_row(ring, i, half, lo, base, nvalid, pair_u, pair_v, pair_w, eps, vol, cb, ct, col, win, total, count):
     """Costs of the cells of block row ``i`` (all their labels) from the
     samples of rows ``i - half .. i + half`` in ``ring`` (``(nv, 2 half +
     1, nx, ns)``, row ``r`` in slot ``r % (2 half + 1)``, label ``lo[r, j]
-    + k`` at ``[.., j, k]``)."""
+    + k`` at ``[.., j, k]``). Scratch: ``cb, ct`` ``(nx,)`` int64, ``col``
+    ``(2 half + 1, nq, ns)`` float64 (``nq = 2 nv + pairs``), ``win``
+    ``(nq, nd)`` float64, ``total, count`` ``(nd,)`` float32."""
     nv = ring.shape[0]
     wsz = ring.shape[1]
     nx = ring.shape[2]
@@ -314,8 +315,9 @@ def _zncc_row(ring, i, half, lo, base, nvalid, pair_u, pair_v, pair_w, eps, vol)
         return
     # label range of each column's sums: the cells of this row whose window holds it
     big = np.int64(1) << 60
-    cb = np.full(nx, big, np.int64)
-    ct = np.full(nx, -big, np.int64)
+    for c in range(nx):
+        cb[c] = big
+        ct[c] = -big
     _row_hull(base, nvalid, i, half, cb, ct)
     ncs = 0
     for c in range(nx):
@@ -324,13 +326,8 @@ def _zncc_row(ring, i, half, lo, base, nvalid, pair_u, pair_v, pair_w, eps, vol)
         return
     nq = 2 * nv + npairs
     # column sums over the window's rows (top to bottom), per quantity:
-    # S_v, S_vv, S_uv; made as the window moves right and kept for the
-    # 2 half + 1 columns it spans (a few kB: they stay in cache)
-    col = np.empty((wsz, nq, ncs))
-    nd = vol.shape[2]
-    win = np.empty((nq, nd))
-    total = np.empty(nd, np.float32)
-    count = np.empty(nd, np.float32)
+    # S_v, S_vv, S_uv, in col; made as the window moves right and kept for
+    # the 2 half + 1 columns it spans (a few kB: they stay in cache)
     made = 0
     for j in range(half, nx - half):
         while made <= j + half:
@@ -487,15 +484,42 @@ def cost_volume(
     pair_v = np.array([p[1] for p in pairs], np.int64)
     wsz = 2 * half + 1
     ring = np.full((nv, wsz, nx, ns), np.nan, np.float32)
-    gi0, gj0 = int(origin[0]), int(origin[1])
-    n0i, n0j = int(nodes0[0]), int(nodes0[1])
-    href = np.ascontiguousarray(href, np.float64)
+    _sweep(tuple(np.ascontiguousarray(im, np.float32) for im in imgs),
+           np.ascontiguousarray(lat_r, np.float64), np.ascontiguousarray(lat_c, np.float64), int(stride), int(k0),
+           float(dh), np.ascontiguousarray(href, np.float64), float(step), int(origin[0]), int(origin[1]),
+           int(nodes0[0]), int(nodes0[1]), np.asarray(win_r, np.float64), np.asarray(win_c, np.float64), bool(cubic),
+           lo, hi, base, nvalid, int(half), pair_u, pair_v, pw, float(eps), ring, vol,
+           *_sweep_scratch(nv, len(pairs), nx, ns, nd, half))
+    return vol
+
+
+def _sweep_scratch(nv: int, npairs: int, nx: int, ns: int, nd: int, half: int) -> tuple:
+    """The scratch of :func:`_sweep`: a line's positions, pixels and
+    kernel weights (:func:`_sample_row`), then a row's column label ranges,
+    column sums, window sums and pair totals (:func:`_zncc_row`)."""
+    nq = 2 * nv + npairs
+    return (np.empty(ns), np.empty(ns), np.empty(ns, np.int64), np.empty(ns, np.int64), np.empty((4, ns)),
+            np.empty((4, ns)), np.empty(nx, np.int64), np.empty(nx, np.int64), np.empty((2 * half + 1, nq, ns)),
+            np.empty((nq, nd)), np.empty(nd, np.float32), np.empty(nd, np.float32))
+
+
+@nb.njit(nogil=True, cache=True, error_model="numpy", _nrt=False)
+def _sweep(imgs, lat_r, lat_c, stride, k0, dh, href, step, gi0, gj0, n0i, n0j, win_r, win_c, cubic, lo, hi, base,
+           nvalid, half, pair_u, pair_v, pw, eps, ring, vol, yb, xb, iyb, ixb, wyb, wxb, cb, ct, col, win, total,
+           count):
+    """The block's rows in turn: each view sampled into the ring's slot of
+    row ``r`` (:func:`_sample_row`), then the costs of row ``r - half``
+    (:func:`_zncc_row`); one compiled call per block (a call per row and
+    view cost each row a few dispatches). ``imgs``: a tuple of the views'
+    float32 windows; the other arguments as :func:`cost_volume` and its
+    scratch (:func:`_sweep_scratch`)."""
+    ny = href.shape[0]
+    wsz = 2 * half + 1
     for r in range(ny):
         slot = r % wsz
-        for v in range(nv):
-            _sample_row(imgs[v], lat_r[v], lat_c[v], stride, k0, dh, href, float(step), gi0, gj0, n0i, n0j,
-                        float(win_r[v]), float(win_c[v]), cubic, r, lo, hi, ring[v, slot])
+        for v in range(len(imgs)):
+            _sample_row(imgs[v], lat_r[v], lat_c[v], stride, k0, dh, href, step, gi0, gj0, n0i, n0j, win_r[v],
+                        win_c[v], cubic, r, lo, hi, ring[v, slot], yb, xb, iyb, ixb, wyb, wxb)
         i = r - half
         if i >= half:
-            _zncc_row(ring, i, half, lo, base, nvalid, pair_u, pair_v, pw, float(eps), vol)
-    return vol
+            _zncc_row(ring, i, half, lo, base, nvalid, pair_u, pair_v, pw, eps, vol, cb, ct, col, win, total, count)
