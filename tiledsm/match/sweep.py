@@ -254,6 +254,9 @@ def _column_sums(ring, i, half, c, cb, m, lo, pair_u, pair_v, out):
         return
     nv = ring.shape[0]
     wsz = ring.shape[1]
+    if nv == 2 and wsz == 5 and m <= _NARROW:
+        _pair_column5(ring, i, c, cb, m, lo, out)
+        return
     for q in range(out.shape[0]):
         out[q, :m] = 0.0
     if nv == 2:
@@ -291,6 +294,77 @@ def _column_sums(ring, i, half, c, cb, m, lo, pair_u, pair_v, out):
             d = out[2 * nv + p, :m]
             for k in range(m):
                 d[k] += np.float64(su[k]) * np.float64(sv[k])
+
+
+#: labels up to which a pair's sums take the one-loop paths (_pair_column5,
+#: _pair_cell5); wider bands vectorise better one quantity at a time
+_NARROW = 32
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def _pair_column5(ring, i, c, cb, m, lo, out):
+    """:func:`_column_sums` of a pair and a 5-row window in one loop over
+    the labels: each sum's five rows added top to bottom from 0, as there
+    (one loop instead of five: a narrow band's ~10 labels leave the loops
+    of a row too short to vectorise well)."""
+    wsz = ring.shape[1]
+    o0 = cb - lo[i - 2, c]
+    o1 = cb - lo[i - 1, c]
+    o2 = cb - lo[i, c]
+    o3 = cb - lo[i + 1, c]
+    o4 = cb - lo[i + 2, c]
+    u0 = ring[0, (i - 2) % wsz, c]
+    u1 = ring[0, (i - 1) % wsz, c]
+    u2 = ring[0, i % wsz, c]
+    u3 = ring[0, (i + 1) % wsz, c]
+    u4 = ring[0, (i + 2) % wsz, c]
+    w0 = ring[1, (i - 2) % wsz, c]
+    w1 = ring[1, (i - 1) % wsz, c]
+    w2 = ring[1, i % wsz, c]
+    w3 = ring[1, (i + 1) % wsz, c]
+    w4 = ring[1, (i + 2) % wsz, c]
+    s0, s1, s00, s11, s01 = out[0], out[1], out[2], out[3], out[4]
+    for k in range(m):
+        x0 = np.float64(u0[o0 + k])
+        x1 = np.float64(u1[o1 + k])
+        x2 = np.float64(u2[o2 + k])
+        x3 = np.float64(u3[o3 + k])
+        x4 = np.float64(u4[o4 + k])
+        y0 = np.float64(w0[o0 + k])
+        y1 = np.float64(w1[o1 + k])
+        y2 = np.float64(w2[o2 + k])
+        y3 = np.float64(w3[o3 + k])
+        y4 = np.float64(w4[o4 + k])
+        s0[k] = ((((0.0 + x0) + x1) + x2) + x3) + x4
+        s00[k] = ((((0.0 + x0 * x0) + x1 * x1) + x2 * x2) + x3 * x3) + x4 * x4
+        s1[k] = ((((0.0 + y0) + y1) + y2) + y3) + y4
+        s11[k] = ((((0.0 + y0 * y0) + y1 * y1) + y2 * y2) + y3 * y3) + y4 * y4
+        s01[k] = ((((0.0 + x0 * y0) + x1 * y1) + x2 * y2) + x3 * y3) + x4 * y4
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def _pair_cell5(col, cb, j, b, m, inv_n, eps, out):
+    """A pair's costs of one cell, 5-column window: the window sums of
+    :func:`_zncc_row` (columns left to right from 0) and :func:`_zncc`,
+    all in one loop over the cell's ``m`` labels (``out[:m]``)."""
+    wsz = col.shape[0]
+    o0 = b - cb[j - 2]
+    o1 = b - cb[j - 1]
+    o2 = b - cb[j]
+    o3 = b - cb[j + 1]
+    o4 = b - cb[j + 2]
+    c0 = col[(j - 2) % wsz]
+    c1 = col[(j - 1) % wsz]
+    c2 = col[j % wsz]
+    c3 = col[(j + 1) % wsz]
+    c4 = col[(j + 2) % wsz]
+    for k in range(m):
+        sa = ((((0.0 + c0[0, o0 + k]) + c1[0, o1 + k]) + c2[0, o2 + k]) + c3[0, o3 + k]) + c4[0, o4 + k]
+        sb = ((((0.0 + c0[1, o0 + k]) + c1[1, o1 + k]) + c2[1, o2 + k]) + c3[1, o3 + k]) + c4[1, o4 + k]
+        saa = ((((0.0 + c0[2, o0 + k]) + c1[2, o1 + k]) + c2[2, o2 + k]) + c3[2, o3 + k]) + c4[2, o4 + k]
+        sbb = ((((0.0 + c0[3, o0 + k]) + c1[3, o1 + k]) + c2[3, o2 + k]) + c3[3, o3 + k]) + c4[3, o4 + k]
+        sab = ((((0.0 + c0[4, o0 + k]) + c1[4, o1 + k]) + c2[4, o2 + k]) + c3[4, o3 + k]) + c4[4, o4 + k]
+        out[k] = _zncc(sa, sb, saa, sbb, sab, inv_n, eps)
 
 
 # error_model="numpy": IEEE division. A flat window (not nodata: a constant
@@ -337,6 +411,9 @@ def _zncc_row(ring, i, half, lo, base, nvalid, pair_u, pair_v, pair_w, eps, vol,
         if m <= 0:
             continue
         b = base[i, j]
+        if npairs == 1 and wsz == 5 and m <= _NARROW:
+            _pair_cell5(col, cb, j, b, m, inv_n, eps, vol[i, j])
+            continue
         # window sums in the order of cost.zncc_cost: columns left to right
         # (each quantity's; the column's ring slot found once for all)
         for q in range(nq):
