@@ -214,33 +214,76 @@ def _bicubic_many(img, ys, xs, out, iy, ix, wy, wx):
 # increment and decrement with it.
 @nb.njit(nogil=True, cache=True, error_model="numpy", _nrt=False)
 def _sample_row(img, lat_r, lat_c, stride, k0, dh, href, step, gi0, gj0, n0i, n0j, win_r, win_c, cubic, r,
-                lo, hi, out, yb, xb, iyb, ixb, wyb, wxb):
+                lo, hi, out, yb, xb, sb, iyb, ixb, wyb, wxb, cells, starts):
     """Samples of one view at the cells of block row ``r``: ``out[j, k]``
     at label ``lo[r, j] + k`` for the labels ``lo[r, j]..hi[r, j]``
     (:func:`sample_hull`), at heights ``href[r, j] + label * step``.
-    ``yb, xb`` (float64), ``iyb, ixb`` (int64) ``(ns,)`` and ``wyb, wxb``
-    ``(4, ns)``: scratch of a line's positions, pixels and kernel weights."""
+
+    The lines of consecutive cells are tracked into one batch of positions
+    (``yb, xb``, float64 ``(cap,)``, ``cap > ns``: batches fill the first
+    ``cap - ns``) and
+    interpolated together (:func:`_batch`; ``sb, iyb, ixb, wyb, wxb`` its
+    scratch, ``cells, starts`` ``(nx,)`` int64 the batch's cells): a narrow
+    band's ~10 labels per cell leave a cell's own loops too short to
+    vectorise. A cell of more than ``_NARROW`` labels is interpolated
+    alone, straight into ``out`` (in the last ``m <= ns`` entries of the
+    scratch, which a batch leaves free)."""
     _, gy, gx = lat_r.shape
-    h, w = img.shape
     nx = href.shape[1]
+    ns = out.shape[1]
+    cap = yb.shape[0]
     i0, fy = lattice_cell(gi0 + r, stride, n0i, gy)
+    pos = 0
+    npend = 0
     for j in range(nx):
         l0 = lo[r, j]
         l1 = hi[r, j]
         if l1 < l0:
             continue
-        j0, fx = lattice_cell(gj0 + j, stride, n0j, gx)
         m = l1 - l0 + 1
-        ys = yb[:m]
-        xs = xb[:m]
-        # positions first, then the interpolation over them: two tight loops
-        _track(lat_r, lat_c, i0, j0, fy, fx, k0, dh, href[r, j], step, l0, win_r, win_c, ys, xs)
-        dst = out[j, :m]
-        if cubic:
-            _bicubic_many(img, ys, xs, dst, iyb, ixb, wyb, wxb)
-        else:
-            for k in range(m):
-                dst[k] = interpolate(img, ys[k], xs[k], cubic, h, w)
+        j0, fx = lattice_cell(gj0 + j, stride, n0j, gx)
+        if m > _NARROW:
+            # a wide band: its own loops are long enough, no copy
+            _track(lat_r, lat_c, i0, j0, fy, fx, k0, dh, href[r, j], step, l0, win_r, win_c, yb[cap - m :],
+                   xb[cap - m :])
+            if cubic:
+                _bicubic_many(img, yb[cap - m :], xb[cap - m :], out[j, :m], iyb, ixb, wyb, wxb)
+            else:
+                _batch(img, cubic, m, 0, yb[cap - m :], xb[cap - m :], out[j, :m], iyb, ixb, wyb, wxb, cells,
+                       starts, out)
+            continue
+        if pos + m > cap - ns:
+            _batch(img, cubic, pos, npend, yb, xb, sb, iyb, ixb, wyb, wxb, cells, starts, out)
+            pos = 0
+            npend = 0
+        _track(lat_r, lat_c, i0, j0, fy, fx, k0, dh, href[r, j], step, l0, win_r, win_c, yb[pos : pos + m],
+               xb[pos : pos + m])
+        cells[npend] = j
+        starts[npend] = pos
+        npend += 1
+        pos += m
+    _batch(img, cubic, pos, npend, yb, xb, sb, iyb, ixb, wyb, wxb, cells, starts, out)
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def _batch(img, cubic, n, ncells, yb, xb, sb, iyb, ixb, wyb, wxb, cells, starts, out):
+    """Interpolate the batch's ``n`` positions ``yb, xb`` into ``sb``
+    (bicubic: :func:`_bicubic_many`; else :func:`interpolate`), then copy
+    cell ``cells[p]``'s samples (``sb[starts[p]:]``) to its row of ``out``."""
+    if n <= 0:
+        return
+    h, w = img.shape
+    if cubic:
+        _bicubic_many(img, yb[:n], xb[:n], sb[:n], iyb, ixb, wyb, wxb)
+    else:
+        for k in range(n):
+            sb[k] = interpolate(img, yb[k], xb[k], cubic, h, w)
+    for p in range(ncells):
+        a = starts[p]
+        b = starts[p + 1] if p + 1 < ncells else n
+        dst = out[cells[p]]
+        for k in range(b - a):
+            dst[k] = sb[a + k]
 
 
 @nb.njit(nogil=True, cache=True, inline="always")
@@ -295,6 +338,11 @@ def _column_sums(ring, i, half, c, cb, m, lo, pair_u, pair_v, out):
             for k in range(m):
                 d[k] += np.float64(su[k]) * np.float64(sv[k])
 
+
+#: positions a row's sampling tracks before it interpolates them together
+#: (_sample_row): cells' lines batched up to this many samples (a few tens
+#: of kB of scratch, kept in the core's cache)
+_BATCH = 512
 
 #: labels up to which a pair's sums take the one-loop paths (_pair_column5,
 #: _pair_cell5); wider bands vectorise better one quantity at a time
@@ -575,15 +623,17 @@ def _sweep_scratch(nv: int, npairs: int, nx: int, ns: int, nd: int, half: int) -
     kernel weights (:func:`_sample_row`), then a row's column label ranges,
     column sums, window sums and pair totals (:func:`_zncc_row`)."""
     nq = 2 * nv + npairs
-    return (np.empty(ns), np.empty(ns), np.empty(ns, np.int64), np.empty(ns, np.int64), np.empty((4, ns)),
-            np.empty((4, ns)), np.empty(nx, np.int64), np.empty(nx, np.int64), np.empty((2 * half + 1, nq, ns)),
+    cap = ns + _BATCH
+    return (np.empty(cap), np.empty(cap), np.empty(cap, np.float32), np.empty(cap, np.int64), np.empty(cap, np.int64),
+            np.empty((4, cap)), np.empty((4, cap)), np.empty(nx, np.int64), np.empty(nx, np.int64),
+            np.empty(nx, np.int64), np.empty(nx, np.int64), np.empty((2 * half + 1, nq, ns)),
             np.empty((nq, nd)), np.empty(nd, np.float32), np.empty(nd, np.float32))
 
 
 @nb.njit(nogil=True, cache=True, error_model="numpy", _nrt=False)
 def _sweep(imgs, lat_r, lat_c, stride, k0, dh, href, step, gi0, gj0, n0i, n0j, win_r, win_c, cubic, lo, hi, base,
-           nvalid, half, pair_u, pair_v, pw, eps, ring, vol, yb, xb, iyb, ixb, wyb, wxb, cb, ct, col, win, total,
-           count):
+           nvalid, half, pair_u, pair_v, pw, eps, ring, vol, yb, xb, sb, iyb, ixb, wyb, wxb, cells, starts, cb, ct, col,
+           win, total, count):
     """The block's rows in turn: each view sampled into the ring's slot of
     row ``r`` (:func:`_sample_row`), then the costs of row ``r - half``
     (:func:`_zncc_row`); one compiled call per block (a call per row and
@@ -596,7 +646,7 @@ def _sweep(imgs, lat_r, lat_c, stride, k0, dh, href, step, gi0, gj0, n0i, n0j, w
         slot = r % wsz
         for v in range(len(imgs)):
             _sample_row(imgs[v], lat_r[v], lat_c[v], stride, k0, dh, href, step, gi0, gj0, n0i, n0j, win_r[v],
-                        win_c[v], cubic, r, lo, hi, ring[v, slot], yb, xb, iyb, ixb, wyb, wxb)
+                        win_c[v], cubic, r, lo, hi, ring[v, slot], yb, xb, sb, iyb, ixb, wyb, wxb, cells, starts)
         i = r - half
         if i >= half:
             _zncc_row(ring, i, half, lo, base, nvalid, pair_u, pair_v, pw, eps, vol, cb, ct, col, win, total, count)
