@@ -61,6 +61,23 @@ def test_fast_equals_reference_band_with_holes(synthetic_scene):
     assert fast["n_samples"] < 0.94 * ref["n_samples"]
 
 
+@pytest.mark.parametrize("interpolation", ["cubic", "linear"])
+def test_fast_equals_reference_narrow_and_wide_bands_in_a_row(synthetic_scene, interpolation):
+    """Rows mixing narrow bands (sampled in batches of cells) and wide ones
+    (more than ``NARROW`` labels: sampled alone, and the pair's
+    per-quantity ZNCC loops): the same heights as the reference sweep."""
+    from tiledsm.match.zncc_rows import NARROW
+
+    sc = synthetic_scene
+    gx, gy, truth, lo, hi, kw = band_with_holes(sc, slice(20, 100), slice(10, 110), (slice(40, 45), slice(60, 70)))
+    wide = (np.arange(lo.shape[1]) % 9 == 4)[None, :] & np.isfinite(lo)
+    lo, hi = np.where(wide, truth - 16.0, lo), np.where(wide, truth + 16.0, hi)
+    out = _both(sc.images, sc.rpcs, gx, gy, lo, hi, params={"interpolation": interpolation}, **kw)
+    _assert_same(out)
+    cand = out["fast"][2]["candidates"]
+    assert cand.max() > NARROW + 10 and np.median(cand[cand > 0]) < NARROW / 2
+
+
 def test_fast_equals_reference_bilinear(synthetic_scene):
     sc = synthetic_scene
     gx, gy = scene_grid(sc)

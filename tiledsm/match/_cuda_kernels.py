@@ -185,7 +185,7 @@ def sample_kernel(imgs, shapes, lat_r, lat_c, stride, k0, dh, href, step, gi0, g
 
 @dev
 def zncc(s_a, s_b, s_aa, s_bb, s_ab, inv_n, eps):
-    # tiledsm.match.sweep._zncc
+    # tiledsm.match.zncc_rows._zncc
     va = s_aa - mul(mul(s_a, s_a), inv_n)
     vb = s_bb - mul(mul(s_b, s_b), inv_n)
     prod = va * vb
@@ -207,7 +207,7 @@ def zncc(s_a, s_b, s_aa, s_bb, s_ab, inv_n, eps):
 def pair_zncc(samp, u, w, lo, i, j, half, label, inv_n, eps):
     """``1 - ZNCC`` of views ``u`` and ``w`` over the window of cell ``[i,
     j]`` at ``label``: column sums of the rows top to bottom, then the
-    columns left to right (tiledsm.match.sweep._column_sums, _zncc_row)."""
+    columns left to right (tiledsm.match.zncc_rows: _column_sums, zncc_row)."""
     sa = 0.0
     sb = 0.0
     saa = 0.0
@@ -239,7 +239,7 @@ def pair_zncc(samp, u, w, lo, i, j, half, label, inv_n, eps):
 @cuda.jit(cache=True)
 def zncc_kernel(samp, lo, base, nvalid, half, pair_u, pair_v, pair_w, eps, vol):
     """``vol[i, j, k]`` of the cells whose window lies in the block
-    (tiledsm.match.sweep._zncc_row): one pair's cost, or the pairs'
+    (tiledsm.match.zncc_rows.zncc_row): one pair's cost, or the pairs'
     weighted mean with three or more views."""
     ny, nx, nd = vol.shape
     t = cuda.grid(1)

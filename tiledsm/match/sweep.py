@@ -18,7 +18,8 @@ the time:
   candidate costs one linear interpolation in height. The arithmetic is
   that of the trilinear lookup of the plain sweep, so the samples are
   identical.
-- **ZNCC window sums are shared between cells.** (Not between candidates:
+- **ZNCC window sums are shared between cells**
+  (:mod:`tiledsm.match.zncc_rows`). (Not between candidates:
   in object space every view's samples move with the candidate height, so
   no window sum serves two candidates.) Column sums over the window's rows
   are computed once per (column, label) of a ground row and reused by the
@@ -45,28 +46,12 @@ import numba as nb
 import numpy as np
 
 from tiledsm.match.sampling import cubic_sum, cubic_weights, interpolate, lattice_cell, lattice_segment
+from tiledsm.match.zncc_rows import NARROW, row_hull, zncc_row
 
 __all__ = ["MASKED_COST", "cost_volume", "empty_volume", "sample_hull", "sample_plan", "track", "view_pairs"]
 
 #: cost of candidates that lie outside a cell's own height range (never chosen)
 MASKED_COST = np.float32(4.0)
-
-
-@nb.njit(nogil=True, cache=True, inline="always")
-def _row_hull(base, nvalid, i, half, lo, hi):
-    """``lo[c]``, ``hi[c]``: lowest first and highest last label of the
-    searched cells ``[i, j]`` of block row ``i`` whose window columns
-    ``j - half .. j + half`` hold column ``c`` and lie inside the block
-    (columns without one are left as they are)."""
-    nx = base.shape[1]
-    for j in range(half, nx - half):
-        if nvalid[i, j] <= 0:
-            continue
-        b = base[i, j]
-        t = b + nvalid[i, j] - 1
-        for c in range(j - half, j + half + 1):
-            lo[c] = min(lo[c], b)
-            hi[c] = max(hi[c], t)
 
 
 @nb.njit(nogil=True, cache=True)
@@ -80,7 +65,7 @@ def sample_hull(base, nvalid, half):
     lo_r = np.full((ny, nx), big, np.int64)
     hi_r = np.full((ny, nx), -big, np.int64)
     for i in range(half, ny - half):
-        _row_hull(base, nvalid, i, half, lo_r[i], hi_r[i])
+        row_hull(base, nvalid, i, half, lo_r[i], hi_r[i])
     lo = np.full((ny, nx), big, np.int64)
     hi = np.full((ny, nx), -big, np.int64)
     for i in range(ny):
@@ -207,195 +192,89 @@ def _bicubic_many(img, ys, xs, out, iy, ix, wy, wx):
         out[k] = cubic_sum(img, r, ix[k], wy[0, k], wy[1, k], wy[2, k], wy[3, k], wx[0, k], wx[1, k], wx[2, k], wx[3, k])
 
 
-@nb.njit(nogil=True, cache=True, error_model="numpy")
+# The row kernels below and their driver (_sweep) are compiled without the
+# runtime's reference counting (_nrt=False, as tiledsm.match.paths._pass_fast):
+# they allocate nothing (_sweep_scratch does), and a narrow band's cells make
+# many short array views (a dozen per cell and view), each an atomic
+# increment and decrement with it.
+@nb.njit(nogil=True, cache=True, error_model="numpy", _nrt=False)
 def _sample_row(img, lat_r, lat_c, stride, k0, dh, href, step, gi0, gj0, n0i, n0j, win_r, win_c, cubic, r,
-                lo, hi, out):
+                lo, hi, out, yb, xb, sb, iyb, ixb, wyb, wxb, cells, starts):
     """Samples of one view at the cells of block row ``r``: ``out[j, k]``
     at label ``lo[r, j] + k`` for the labels ``lo[r, j]..hi[r, j]``
-    (:func:`sample_hull`), at heights ``href[r, j] + label * step``."""
+    (:func:`sample_hull`), at heights ``href[r, j] + label * step``.
+
+    The lines of consecutive cells are tracked into one batch of positions
+    (``yb, xb``, float64 ``(cap,)``, ``cap > ns``: batches fill the first
+    ``cap - ns``) and
+    interpolated together (:func:`_batch`; ``sb, iyb, ixb, wyb, wxb`` its
+    scratch, ``cells, starts`` ``(nx,)`` int64 the batch's cells): a narrow
+    band's ~10 labels per cell leave a cell's own loops too short to
+    vectorise. A cell of more than ``NARROW`` labels is interpolated
+    alone, straight into ``out`` (in the last ``m <= ns`` entries of the
+    scratch, which a batch leaves free)."""
     _, gy, gx = lat_r.shape
-    h, w = img.shape
     nx = href.shape[1]
     ns = out.shape[1]
-    yb = np.empty(ns)
-    xb = np.empty(ns)
-    # _bicubic_many's scratch: pixels and kernel weights of a line's samples
-    iyb = np.empty(ns, np.int64)
-    ixb = np.empty(ns, np.int64)
-    wyb = np.empty((4, ns))
-    wxb = np.empty((4, ns))
+    cap = yb.shape[0]
     i0, fy = lattice_cell(gi0 + r, stride, n0i, gy)
+    pos = 0
+    npend = 0
     for j in range(nx):
         l0 = lo[r, j]
         l1 = hi[r, j]
         if l1 < l0:
             continue
-        j0, fx = lattice_cell(gj0 + j, stride, n0j, gx)
         m = l1 - l0 + 1
-        ys = yb[:m]
-        xs = xb[:m]
-        # positions first, then the interpolation over them: two tight loops
-        _track(lat_r, lat_c, i0, j0, fy, fx, k0, dh, href[r, j], step, l0, win_r, win_c, ys, xs)
-        dst = out[j, :m]
-        if cubic:
-            _bicubic_many(img, ys, xs, dst, iyb, ixb, wyb, wxb)
-        else:
-            for k in range(m):
-                dst[k] = interpolate(img, ys[k], xs[k], cubic, h, w)
+        j0, fx = lattice_cell(gj0 + j, stride, n0j, gx)
+        if m > NARROW:
+            # a wide band: its own loops are long enough, no copy
+            _track(lat_r, lat_c, i0, j0, fy, fx, k0, dh, href[r, j], step, l0, win_r, win_c, yb[cap - m :],
+                   xb[cap - m :])
+            if cubic:
+                _bicubic_many(img, yb[cap - m :], xb[cap - m :], out[j, :m], iyb, ixb, wyb, wxb)
+            else:
+                _batch(img, cubic, m, 0, yb[cap - m :], xb[cap - m :], out[j, :m], iyb, ixb, wyb, wxb, cells,
+                       starts, out)
+            continue
+        if pos + m > cap - ns:
+            _batch(img, cubic, pos, npend, yb, xb, sb, iyb, ixb, wyb, wxb, cells, starts, out)
+            pos = 0
+            npend = 0
+        _track(lat_r, lat_c, i0, j0, fy, fx, k0, dh, href[r, j], step, l0, win_r, win_c, yb[pos : pos + m],
+               xb[pos : pos + m])
+        cells[npend] = j
+        starts[npend] = pos
+        npend += 1
+        pos += m
+    _batch(img, cubic, pos, npend, yb, xb, sb, iyb, ixb, wyb, wxb, cells, starts, out)
 
 
 @nb.njit(nogil=True, cache=True, inline="always")
-def _column_sums(ring, i, half, c, cb, m, lo, pair_u, pair_v, out):
-    """``out[q, k]``: sums over the rows ``i - half .. i + half`` (in that
-    order) of column ``c`` at label ``cb + k``, ``k < m``, of the samples
-    of each view (``q = v``), their squares (``nv + v``) and the products
-    of each view pair (``2 nv + p``). Loops over ``k`` on 1-D slices with a
-    non-negative index: they vectorise."""
-    if m <= 0:
+def _batch(img, cubic, n, ncells, yb, xb, sb, iyb, ixb, wyb, wxb, cells, starts, out):
+    """Interpolate the batch's ``n`` positions ``yb, xb`` into ``sb``
+    (bicubic: :func:`_bicubic_many`; else :func:`interpolate`), then copy
+    cell ``cells[p]``'s samples (``sb[starts[p]:]``) to its row of ``out``."""
+    if n <= 0:
         return
-    nv = ring.shape[0]
-    wsz = ring.shape[1]
-    for q in range(out.shape[0]):
-        out[q, :m] = 0.0
-    if nv == 2:
-        # a pair: each row's two samples read once for all five sums (the
-        # same additions in the same order as below)
-        s0, s1, s00, s11, s01 = out[0, :m], out[1, :m], out[2, :m], out[3, :m], out[4, :m]
-        for r in range(i - half, i + half + 1):
-            slot = r % wsz
-            off = cb - lo[r, c]
-            u = ring[0, slot, c, off : off + m]
-            w = ring[1, slot, c, off : off + m]
-            for k in range(m):
-                x = np.float64(u[k])
-                y = np.float64(w[k])
-                s0[k] += x
-                s00[k] += x * x
-                s1[k] += y
-                s11[k] += y * y
-                s01[k] += x * y
-        return
-    for r in range(i - half, i + half + 1):
-        slot = r % wsz
-        off = cb - lo[r, c]
-        for v in range(nv):
-            src = ring[v, slot, c, off : off + m]
-            d1 = out[v, :m]
-            d2 = out[nv + v, :m]
-            for k in range(m):
-                x = np.float64(src[k])
-                d1[k] += x
-                d2[k] += x * x
-        for p in range(pair_u.shape[0]):
-            su = ring[pair_u[p], slot, c, off : off + m]
-            sv = ring[pair_v[p], slot, c, off : off + m]
-            d = out[2 * nv + p, :m]
-            for k in range(m):
-                d[k] += np.float64(su[k]) * np.float64(sv[k])
+    h, w = img.shape
+    if cubic:
+        _bicubic_many(img, yb[:n], xb[:n], sb[:n], iyb, ixb, wyb, wxb)
+    else:
+        for k in range(n):
+            sb[k] = interpolate(img, yb[k], xb[k], cubic, h, w)
+    for p in range(ncells):
+        a = starts[p]
+        b = starts[p + 1] if p + 1 < ncells else n
+        dst = out[cells[p]]
+        for k in range(b - a):
+            dst[k] = sb[a + k]
 
 
-# error_model="numpy": IEEE division. A flat window (not nodata: a constant
-# patch) has a zero deviation; its NaN is turned into an invalid cost by
-# _zncc's select, where numba's default Python model raised
-# ZeroDivisionError (and kept a branch in every division of the loop).
-@nb.njit(nogil=True, cache=True, error_model="numpy")
-def _zncc_row(ring, i, half, lo, base, nvalid, pair_u, pair_v, pair_w, eps, vol):
-    """Costs of the cells of block row ``i`` (all their labels) from the
-    samples of rows ``i - half .. i + half`` in ``ring`` (``(nv, 2 half +
-    1, nx, ns)``, row ``r`` in slot ``r % (2 half + 1)``, label ``lo[r, j]
-    + k`` at ``[.., j, k]``)."""
-    nv = ring.shape[0]
-    wsz = ring.shape[1]
-    nx = ring.shape[2]
-    ny = base.shape[0]
-    npairs = pair_u.shape[0]
-    inv_n = 1.0 / (wsz * wsz)
-    if i < half or i >= ny - half:
-        return
-    # label range of each column's sums: the cells of this row whose window holds it
-    big = np.int64(1) << 60
-    cb = np.full(nx, big, np.int64)
-    ct = np.full(nx, -big, np.int64)
-    _row_hull(base, nvalid, i, half, cb, ct)
-    ncs = 0
-    for c in range(nx):
-        ncs = max(ncs, ct[c] - cb[c] + 1)
-    if ncs <= 0:
-        return
-    nq = 2 * nv + npairs
-    # column sums over the window's rows (top to bottom), per quantity:
-    # S_v, S_vv, S_uv; made as the window moves right and kept for the
-    # 2 half + 1 columns it spans (a few kB: they stay in cache)
-    col = np.empty((wsz, nq, ncs))
-    nd = vol.shape[2]
-    win = np.empty((nq, nd))
-    total = np.empty(nd, np.float32)
-    count = np.empty(nd, np.float32)
-    made = 0
-    for j in range(half, nx - half):
-        while made <= j + half:
-            _column_sums(ring, i, half, made, cb[made], ct[made] - cb[made] + 1, lo, pair_u, pair_v, col[made % wsz])
-            made += 1
-        m = nvalid[i, j]
-        if m <= 0:
-            continue
-        b = base[i, j]
-        # window sums in the order of cost.zncc_cost: columns left to right
-        # (each quantity's; the column's ring slot found once for all)
-        for q in range(nq):
-            w = win[q, :m]
-            for k in range(m):
-                w[k] = 0.0
-        for c in range(j - half, j + half + 1):
-            off = b - cb[c]
-            cs = col[c % wsz]
-            for q in range(nq):
-                w = win[q, :m]
-                src = cs[q, off : off + m]
-                for k in range(m):
-                    w[k] += src[k]
-        out = vol[i, j, :m]
-        if npairs == 1:
-            sa, sb, saa, sbb, sab = win[0, :m], win[1, :m], win[2, :m], win[3, :m], win[4, :m]
-            for k in range(m):
-                out[k] = _zncc(sa[k], sb[k], saa[k], sbb[k], sab[k], inv_n, eps)
-            continue
-        tot = total[:m]
-        cnt = count[:m]
-        for k in range(m):
-            tot[k] = 0.0
-            cnt[k] = 0.0
-        for p in range(npairs):
-            u = pair_u[p]
-            v = pair_v[p]
-            wp = pair_w[p]
-            sa, sb, saa, sbb, sab = win[u, :m], win[v, :m], win[nv + u, :m], win[nv + v, :m], win[2 * nv + p, :m]
-            for k in range(m):
-                cst = _zncc(sa[k], sb[k], saa[k], sbb[k], sab[k], inv_n, eps)
-                if cst == cst:
-                    tot[k] += wp * cst
-                    cnt[k] += wp
-        for k in range(m):
-            out[k] = tot[k] / cnt[k] if cnt[k] != 0 else np.float32(np.nan)
-
-
-@nb.njit(nogil=True, cache=True, inline="always")
-def _zncc(s_a, s_b, s_aa, s_bb, s_ab, inv_n, eps):
-    """``1 - ZNCC`` (float32) from window sums, the arithmetic of
-    :func:`tiledsm.match.cost.zncc_cost`; NaN for a flat window or where a
-    sum is not finite (the window touched nodata). Written with selects,
-    not early returns, so that loops over candidates vectorise; the caller
-    is compiled with IEEE division (a flat window divides by zero)."""
-    va = s_aa - s_a * s_a * inv_n
-    vb = s_bb - s_b * s_b * inv_n
-    c = (s_ab - s_a * s_b * inv_n) / np.sqrt(va * vb)
-    if c > 1.0:
-        c = 1.0
-    elif c < -1.0:
-        c = -1.0
-    good = (va > eps * (1.0 + s_aa)) & (vb > eps * (1.0 + s_bb)) & (c == c)
-    return np.float32(1.0 - c) if good else np.float32(np.nan)
-
+#: positions a row's sampling tracks before it interpolates them together
+#: (_sample_row): cells' lines batched up to this many samples (a few tens
+#: of kB of scratch, kept in the core's cache)
+_BATCH = 512
 
 @nb.njit(nogil=True, cache=True)
 def empty_volume(nvalid, nd):
@@ -487,15 +366,44 @@ def cost_volume(
     pair_v = np.array([p[1] for p in pairs], np.int64)
     wsz = 2 * half + 1
     ring = np.full((nv, wsz, nx, ns), np.nan, np.float32)
-    gi0, gj0 = int(origin[0]), int(origin[1])
-    n0i, n0j = int(nodes0[0]), int(nodes0[1])
-    href = np.ascontiguousarray(href, np.float64)
+    _sweep(tuple(np.ascontiguousarray(im, np.float32) for im in imgs),
+           np.ascontiguousarray(lat_r, np.float64), np.ascontiguousarray(lat_c, np.float64), int(stride), int(k0),
+           float(dh), np.ascontiguousarray(href, np.float64), float(step), int(origin[0]), int(origin[1]),
+           int(nodes0[0]), int(nodes0[1]), np.asarray(win_r, np.float64), np.asarray(win_c, np.float64), bool(cubic),
+           lo, hi, base, nvalid, int(half), pair_u, pair_v, pw, float(eps), ring, vol,
+           *_sweep_scratch(nv, len(pairs), nx, ns, nd, half))
+    return vol
+
+
+def _sweep_scratch(nv: int, npairs: int, nx: int, ns: int, nd: int, half: int) -> tuple:
+    """The scratch of :func:`_sweep`: a line's positions, pixels and
+    kernel weights (:func:`_sample_row`), then a row's column label ranges,
+    column sums, window sums and pair totals (:func:`zncc_row`)."""
+    nq = 2 * nv + npairs
+    cap = ns + _BATCH
+    return (np.empty(cap), np.empty(cap), np.empty(cap, np.float32), np.empty(cap, np.int64), np.empty(cap, np.int64),
+            np.empty((4, cap)), np.empty((4, cap)), np.empty(nx, np.int64), np.empty(nx, np.int64),
+            np.empty(nx, np.int64), np.empty(nx, np.int64), np.empty((2 * half + 1, nq, ns)),
+            np.empty((nq, nd)), np.empty(nd, np.float32), np.empty(nd, np.float32))
+
+
+@nb.njit(nogil=True, cache=True, error_model="numpy", _nrt=False)
+def _sweep(imgs, lat_r, lat_c, stride, k0, dh, href, step, gi0, gj0, n0i, n0j, win_r, win_c, cubic, lo, hi, base,
+           nvalid, half, pair_u, pair_v, pw, eps, ring, vol, yb, xb, sb, iyb, ixb, wyb, wxb, cells, starts, cb, ct, col,
+           win, total, count):
+    """The block's rows in turn: each view sampled into the ring's slot of
+    row ``r`` (:func:`_sample_row`), then the costs of row ``r - half``
+    (:func:`zncc_row`); one compiled call per block (a call per row and
+    view cost each row a few dispatches). ``imgs``: a tuple of the views'
+    float32 windows; the other arguments as :func:`cost_volume` and its
+    scratch (:func:`_sweep_scratch`)."""
+    ny = href.shape[0]
+    wsz = 2 * half + 1
     for r in range(ny):
         slot = r % wsz
-        for v in range(nv):
-            _sample_row(imgs[v], lat_r[v], lat_c[v], stride, k0, dh, href, float(step), gi0, gj0, n0i, n0j,
-                        float(win_r[v]), float(win_c[v]), cubic, r, lo, hi, ring[v, slot])
+        for v in range(len(imgs)):
+            _sample_row(imgs[v], lat_r[v], lat_c[v], stride, k0, dh, href, step, gi0, gj0, n0i, n0j, win_r[v],
+                        win_c[v], cubic, r, lo, hi, ring[v, slot], yb, xb, sb, iyb, ixb, wyb, wxb, cells, starts)
         i = r - half
         if i >= half:
-            _zncc_row(ring, i, half, lo, base, nvalid, pair_u, pair_v, pw, float(eps), vol)
-    return vol
+            zncc_row(ring, i, half, lo, base, nvalid, pair_u, pair_v, pw, eps, vol, cb, ct, col, win, total, count)
