@@ -1,7 +1,8 @@
-"""Helpers of the run-contract tests of ``tiledsm ortho`` and ``tiledsm orient``
-(tests/ortho/test_ortho_contract.py, tests/orient/test_orient_contract.py):
-the command in a subprocess, as a user runs it, started and watched until a
-condition holds, then SIGKILLed, or its one error line read."""
+"""What the run-contract tests of every command share (tests/*/test_*_contract.py,
+tests/test_run_contract.py): the command in a subprocess, as a user runs it,
+started and watched until a condition holds (its lock taken, a temporary
+written), then SIGKILLed; a second run while the first holds the folder;
+a refused run's one error line."""
 
 from __future__ import annotations
 
@@ -62,6 +63,16 @@ def kill(p: subprocess.Popen) -> None:
     if p.poll() is None:
         os.killpg(p.pid, signal.SIGKILL)
     p.wait(timeout=30)
+
+
+def killed_when(cmd: list[str], seen: Callable[[], bool], what: str, log: Path, timeout: float = 180) -> None:
+    """Start ``cmd`` and SIGKILL its process group as soon as ``seen()`` (``what``, in messages)."""
+    p = start(cmd, log)
+    try:
+        wait_until(p, seen, what, log, timeout)
+    finally:
+        kill(p)
+    assert p.returncode == -signal.SIGKILL
 
 
 def temporaries(folder: Path) -> list[str]:

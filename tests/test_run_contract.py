@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import yaml
 
-from tests.contract import ok, refused_while_held, run
+from tests.run_contract import ok, refused_while_held, run
 from tiledsm.io import open_product
 from tiledsm.synth import make_scene
 

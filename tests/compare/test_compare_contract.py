@@ -22,7 +22,7 @@ import pytest
 import yaml
 
 from tests.compare.conftest import centres, terrain, write_tif
-from tests.contract import killed_when, ok, refused_while_held, run
+from tests.run_contract import killed_when, ok, refused_while_held, run
 from tiledsm.io import open_product
 
 pytestmark = pytest.mark.slow  # four comparisons in subprocesses: ~2 min on the 2-core machine

@@ -19,7 +19,7 @@ import pytest
 import rasterio
 import yaml
 
-from tests.contract import killed_when, ok, refused_while_held, run
+from tests.run_contract import killed_when, ok, refused_while_held, run
 from tiledsm.geometry import RPC
 from tiledsm.synth import make_scene
 
