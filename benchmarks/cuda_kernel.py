@@ -20,10 +20,16 @@ tiledsm's matching modules:
    cells valid in both whose heights differ by more than 1e-3 m (at most
    0.1 %).
 
+   With ``--threads N`` each call is also run by N threads at once, each
+   doing ``--repeat`` tasks after a warm-up, as N dask threads feed one
+   GPU (or N cores): the row's ``mcells_per_s`` is then all threads' cells
+   over the wall time (``threads`` says N). This is the throughput a
+   DSM run sees; the single-task rows show a task's latency.
+
 Usage::
 
     .venv/bin/python benchmarks/cuda_kernel.py --capture runs/cuda_tasks
-    python3 benchmarks/cuda_kernel.py --tasks runs/cuda_tasks --kernels fast cuda \\
+    python3 benchmarks/cuda_kernel.py --tasks runs/cuda_tasks --kernels fast cuda --threads 16 \\
         --json benchmarks/results/cuda_kernel.json
 
 Prints a markdown table and writes ``--json``.
@@ -134,6 +140,45 @@ def run_call(kernel: str, vargs: tuple, wargs: dict, repeat: int) -> tuple[tuple
     return out, best_v, best_w
 
 
+def run_threads(kernel: str, vargs: tuple, wargs: dict, repeat: int, threads: int) -> float:
+    """Wall seconds of ``threads`` threads each running the call ``repeat``
+    times (cost volume, then winners), after one warm-up call each."""
+    import threading
+
+    from tiledsm.match.kernels import KERNELS
+
+    k = KERNELS[kernel].for_device("cuda") if kernel == "cuda" else KERNELS[kernel]
+    start = threading.Barrier(threads + 1)
+    done = threading.Barrier(threads + 1)
+    errors: list[BaseException] = []
+
+    def work():
+        try:
+            k.winners(k.cost_volume(*vargs), **wargs)
+        except BaseException as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+        start.wait()
+        try:
+            for _ in range(repeat):
+                k.winners(k.cost_volume(*vargs), **wargs)
+        except BaseException as exc:  # noqa: BLE001
+            errors.append(exc)
+        done.wait()
+
+    pool = [threading.Thread(target=work) for _ in range(threads)]
+    for t in pool:
+        t.start()
+    start.wait()
+    t0 = time.perf_counter()
+    done.wait()
+    wall = time.perf_counter() - t0
+    for t in pool:
+        t.join()
+    if errors:
+        raise errors[0]
+    return wall
+
+
 def agreement(ref: tuple, other: tuple, step: float) -> dict:
     """Cells whose winner validity differs, and heights (index times the
     step) differing by more than 1e-3 m among cells valid in both."""
@@ -154,6 +199,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", type=int, default=1024, help="scene side, pixels (--capture)")
     ap.add_argument("--chunk", type=int, default=512)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=1, help="also run each call by this many threads at once")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     if args.capture:
@@ -179,12 +225,21 @@ def main(argv: list[str] | None = None) -> int:
             # growth is what the next one adds (a CUDA context, say)
             row["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
             rows.append(row)
-    print("| task | kernel | cells | cost volume (s) | aggregation + winners (s) | Mcells/s | validity differs | off > 1 mm |")
-    print("|---|---|---|---|---|---|---|---|")
+        for kernel in args.kernels if args.threads > 1 else ():
+            wall = run_threads(kernel, vargs, wargs, args.repeat, args.threads)
+            tasks = args.threads * args.repeat
+            rows.append({"task": task, "call": path.stem, "kernel": kernel, "threads": args.threads, "tasks": tasks,
+                         "cells": ny * nx, "candidates": int(np.max(vargs[14])), "wall_s": wall,
+                         "total_s": wall / tasks, "cost_s": float("nan"), "winners_s": float("nan"),
+                         "mcells_per_s": tasks * ny * nx / wall / 1e6})
+    print("| task | kernel | threads | cells | cost volume (s) | aggregation + winners (s) | s per task | Mcells/s "
+          "| validity differs | off > 1 mm |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         ag = r.get("agreement", {})
-        print(f"| {r['call']} | {r['kernel']} | {r['cells']} | {r['cost_s']:.4f} | {r['winners_s']:.4f} | "
-              f"{r['mcells_per_s']:.2f} | {ag.get('valid_differs', 0):.4%} | {ag.get('off_1mm', 0):.4%} |")
+        print(f"| {r['call']} | {r['kernel']} | {r.get('threads', 1)} | {r['cells']} | {r['cost_s']:.4f} | "
+              f"{r['winners_s']:.4f} | {r['total_s']:.4f} | {r['mcells_per_s']:.2f} | "
+              f"{ag.get('valid_differs', 0):.4%} | {ag.get('off_1mm', 0):.4%} |")
     if args.json:
         device = None
         try:

@@ -548,6 +548,43 @@ SPEED = [
 ]
 
 
+#: the DSM rows of one GPU machine's run: (label, the row's match)
+GPU_ROWS = [("16 CPU threads", {"case": "synth4096", "device": None}),
+            ("16 threads feeding the GPU", {"case": "synth4096", "device": "cuda"})]
+
+#: a whole Pléiades scene, cells of the output grid (40 000² at the image's GSD)
+WHOLE_SCENE_CELLS = 40_000 ** 2
+
+
+def gpu_table() -> str:
+    """The GPU machine's figures (``dsm_gpu.json``, ``cuda_kernel.json``)
+    and the whole-scene time they project: cells over the measured rate,
+    per row (a projection, not a run: fixed costs such as start-up and tie
+    points do not grow with the scene, reads and exports do)."""
+    dsm = json.loads((RESULTS / "dsm_gpu.json").read_text())
+    kern = json.loads((RESULTS / "cuda_kernel.json").read_text())
+    gpu = dsm["host"].get("gpu", "GPU")
+    rows = []
+    for label, match in GPU_ROWS:
+        r = next(x for x in dsm["rows"] if all(x.get(k) == v for k, v in match.items()))
+        rows.append([f"`tiledsm dsm`, synthetic 4096², {label}", f"{r['measurement']['wall_s']:.1f} s wall, "
+                     f"{r['mcells_per_s_wall']:.2f} Mcells/s", f"{WHOLE_SCENE_CELLS / r['mcells_per_s_wall'] / 1e6 / 60:.0f} min",
+                     "[dsm_gpu.json](results.md#dsm_gpujson)"])
+    for a in dsm.get("device_agreement", []):
+        rows.append(["the two DSMs: cells valid in one only; heights off by > 1 mm",
+                     f"{a['valid_in_one_share']:.4%}; {a['off_1mm_share']:.4%}", "-",
+                     "[dsm_gpu.json](results.md#dsm_gpujson)"])
+    for k in kern["rows"]:
+        if k.get("threads", 1) > 1 and k["kernel"] == "cuda":
+            tree = "this version" if k["tree"] == "after" else k["tree"].split(":")[0]
+            rows.append([f"matching kernels alone, {k['threads']} threads feeding the GPU ({tree})",
+                         f"{k['mcells_per_s']:.1f} Mcells/s", f"{WHOLE_SCENE_CELLS / k['mcells_per_s'] / 1e6 / 60:.1f} min",
+                         "[cuda_kernel.json](results.md#cuda_kerneljson)"])
+    return (f"On one {gpu} with 16 CPU cores, each row measured in one session; the last column divides a "
+            f"whole 40 000² scene's cells by the row's rate.\n\n"
+            + _table(["measured", "value", "40 000² at that rate", "results file"], rows))
+
+
 def _pick(data: Any, path: list, file: str) -> Any:
     for step in path:
         if isinstance(step, dict):
@@ -578,5 +615,5 @@ def headline_pages() -> dict[str, str]:
         f"{GENERATED}/speed.md": "# Speed\n\nGenerated from `benchmarks/results/*.json` when the site is built, on "
         "the project's 2-core machine (its speed drifts by 30-50 % within an hour: compare runs of one "
         "session only; `benchmarks/dsm_paired.py` measures a change in alternating pairs).\n\n"
-        + headline_table(SPEED),
+        + headline_table(SPEED) + "\n## On a GPU machine\n\n" + gpu_table(),
     }

@@ -301,11 +301,13 @@ def label_cost(buf, line, slot, l, n):
 
 
 @cuda.jit(cache=True)
-def path_kernel(cost, base, nvalid, P1, P2, invalid, di, dj, gi0, gj0, period, round_min, S, buf):
+def path_kernel(cost, base, nvalid, P1, P2, invalid, di, dj, gi0, gj0, period, round_min, assign, S, buf):
     """One path line per block: its cells in order, the candidates of
     a cell spread over the block's threads (tiledsm.match.paths._cell:
     float64 path costs stored as float32, the predecessor's minimum in
-    float64 along a row, rounded to float32 across rows)."""
+    float64 along a row, rounded to float32 across rows). The path costs
+    are added to ``S``, or written with ``assign`` (the first direction:
+    ``0 + x`` is ``x``, so ``S`` needs no zeroing first)."""
     ny, nx, nd = cost.shape
     line = cuda.blockIdx.x
     tid = cuda.threadIdx.x
@@ -361,7 +363,10 @@ def path_kernel(cost, base, nvalid, P1, P2, invalid, di, dj, gi0, gj0, period, r
                 tr = f64(smaller(at, side)) - prev_min
                 o = f64(c) + smaller(tr, f64(P2))
             buf[line, 1 - slot, k] = f32(o)
-            S[i, j, k] += f32(o)
+            if assign:
+                S[i, j, k] = f32(o)
+            else:
+                S[i, j, k] += f32(o)
             if o < m:
                 m = o
             k += nthreads

@@ -42,7 +42,7 @@ device="cuda")``.
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -139,20 +139,99 @@ _LOADED: set = set()
 _LOADING = threading.Lock()
 
 
-def _run(kernel, grid: tuple[int, int], *args) -> None:
-    """Launch ``kernel[grid](*args)``. A kernel's first launch in a CUDA
-    context loads its module there, which numba-cuda does not guard against
-    threads: sixteen dask threads starting their first task together failed
-    with "key already in dictionary: <CUlibrary ...>" (an H100, kernels
-    from the disk cache). First launches are therefore taken one at a
-    time."""
+def _run(kernel, grid: tuple[int, int], stream, *args) -> None:
+    """Launch ``kernel[grid]`` on ``stream``. A kernel's first launch in a
+    CUDA context loads its module there, which numba-cuda does not guard
+    against threads: sixteen dask threads starting their first task
+    together failed with "key already in dictionary: <CUlibrary ...>" (an
+    H100, kernels from the disk cache). First launches are therefore taken
+    one at a time."""
     key = (kernel, 0 if _simulated() else id(_cuda().current_context()))
     if key in _LOADED:
-        kernel[grid](*args)
+        kernel[grid[0], grid[1], stream](*args)
         return
     with _LOADING:
-        kernel[grid](*args)
+        kernel[grid[0], grid[1], stream](*args)
         _LOADED.add(key)
+
+
+class _Workspace:
+    """A thread's device buffers and stream on one GPU, reused by its tasks.
+
+    Each dask thread matches its tasks one after another, so a task can
+    take the buffers its predecessor used instead of allocating its own:
+    ``cuMemAlloc`` and ``cuMemFree`` synchronise the whole device, and
+    with sixteen threads each allocating a dozen arrays per task the GPU
+    ran one task at a time. Each thread's work goes to its own stream, so
+    the tasks of different threads overlap on the device (uploads,
+    kernels and downloads); nothing is queued on the default stream,
+    which would order every thread's work behind every other's. A buffer
+    grows (by a quarter more than asked, to spare a task of slightly
+    larger shape a new allocation) and never shrinks: a thread holds the
+    device memory of its largest task (:func:`tiledsm.plan.memory`
+    counts that per task).
+    """
+
+    def __init__(self, cuda):
+        self.cuda = cuda
+        self.stream = cuda.stream()
+        self._free: dict[str, object] = {}
+        self._taken: dict[str, object] = {}
+
+    def take(self, role: str, shape, dtype):
+        """A device array ``shape, dtype`` in the buffer ``role``, out of
+        the workspace until :meth:`give` returns it (a buffer never given
+        back is left to the garbage collector and the next take of its
+        role allocates anew)."""
+        shape = tuple(int(n) for n in shape)
+        dtype = np.dtype(dtype)
+        nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+        if nbytes == 0:
+            return self.cuda.device_array(shape, dtype, stream=self.stream)
+        buf = self._free.pop(role, None)
+        if buf is None or buf.shape[0] < nbytes:
+            buf = self.cuda.device_array(max(nbytes + nbytes // 4, 256), np.uint8, stream=self.stream)
+        self._taken[role] = buf
+        return buf[:nbytes].view(dtype).reshape(shape)
+
+    def give(self, *roles: str) -> None:
+        """Return the buffers last taken for ``roles`` to the workspace."""
+        self.restore(self.claim(*roles))
+
+    def claim(self, *roles: str) -> list:
+        """The buffers last taken for ``roles``, as ``(role, buffer)``
+        pairs the caller holds until it gives them back with :meth:`restore`."""
+        return [(role, self._taken.pop(role)) for role in roles if role in self._taken]
+
+    def restore(self, held: list) -> None:
+        """Put claimed buffers back (the larger of two for a role)."""
+        for role, buf in held:
+            old = self._free.get(role)
+            if old is None or old.shape[0] < buf.shape[0]:
+                self._free[role] = buf
+
+    def upload(self, role: str, host) -> object:
+        """``host`` (made contiguous) copied into the buffer ``role`` on
+        the stream (the copy from pageable memory is complete when this
+        returns, so ``host`` may be dropped)."""
+        host = np.ascontiguousarray(host)
+        dev = self.take(role, host.shape, host.dtype)
+        dev.copy_to_device(host, stream=self.stream)
+        return dev
+
+
+_LOCAL = threading.local()
+
+
+def _workspace(cuda, index: int) -> _Workspace:
+    """This thread's :class:`_Workspace` on GPU ``index`` (made current)."""
+    spaces = getattr(_LOCAL, "spaces", None)
+    if spaces is None:
+        spaces = _LOCAL.spaces = {}
+    space = spaces.get(index)
+    if space is None:
+        space = spaces[index] = _Workspace(cuda)
+    return space
 
 
 @dataclass
@@ -162,13 +241,30 @@ class DeviceVolume:
     Attributes
     ----------
     data : numba.cuda.cudadrv.devicearray.DeviceNDArray
-        ``(ny, nx, nd)`` float32 costs (the CPU kernel's volume).
+        ``(ny, nx, nd)`` float32 costs (the CPU kernel's volume), in the
+        ``"vol"`` buffer of its thread's workspace until :func:`best`
+        gives it back.
     device : str
         The device it lives on.
+    base, nvalid : numpy.ndarray
+        The host arrays the volume was made with, and their device copies
+        (``d_base``, ``d_nvalid``): :func:`best` reuses these when given
+        the same arrays.
+    stream : numba.cuda.cudadrv.driver.Stream
+        The stream its work was queued on.
+    held : list
+        Its workspace buffers, given back by :func:`best` (after which
+        the volume is gone).
     """
 
     data: object
     device: str
+    base: np.ndarray | None = None
+    nvalid: np.ndarray | None = None
+    d_base: object = None
+    d_nvalid: object = None
+    stream: object = None
+    held: list = field(default_factory=list)
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -176,7 +272,8 @@ class DeviceVolume:
 
     def __array__(self, dtype=None, copy=None):
         with _Selected(self.device):
-            host = self.data.copy_to_host()
+            host = self.data.copy_to_host(stream=self.stream)
+            self.stream.synchronize()
         return host if dtype is None else host.astype(dtype)
 
 
@@ -186,42 +283,53 @@ def cost_volume(
 ) -> DeviceVolume:
     """The SGVLL cost volume of a block on ``device``: the arguments and
     values of :func:`tiledsm.match.sweep.cost_volume`, left on the GPU
-    (:class:`DeviceVolume`; ``numpy.asarray`` copies it to the host)."""
+    (:class:`DeviceVolume`; ``numpy.asarray`` copies it to the host).
+    The work is queued on this thread's stream and buffers
+    (:class:`_Workspace`)."""
     nv = len(imgs)
     ny, nx = href.shape
     nd = max(1, int(np.max(nvalid)))
-    base = np.ascontiguousarray(base, np.int64)
-    nvalid = np.ascontiguousarray(nvalid, np.int64)
-    lo, hi, ns = sample_plan(base, nvalid, half, details)
+    base_h = np.ascontiguousarray(base, np.int64)
+    nvalid_h = np.ascontiguousarray(nvalid, np.int64)
+    lo, hi, ns = sample_plan(base_h, nvalid_h, half, details)
     pairs, pw = view_pairs(nv, pair_w)
     sample_k, zncc_k, fill_k, _, _ = _kernels()
     with _Selected(device) as cuda:
-        vol = cuda.device_array((ny, nx, nd), np.float32)
-        d_nvalid = cuda.to_device(nvalid)
-        _run(fill_k, _launch(ny * nx * nd), d_nvalid, vol)
+        space = _workspace(cuda, _device_index(device))
+        stream = space.stream
+        vol = space.take("vol", (ny, nx, nd), np.float32)
+        d_nvalid = space.upload("nvalid", nvalid_h)
+        d_base = space.upload("base", base_h)
+        _run(fill_k, _launch(ny * nx * nd), stream, d_nvalid, vol)
+        out = DeviceVolume(vol, device, base, nvalid, d_base, d_nvalid, stream, space.claim("vol", "nvalid", "base"))
         if ns <= 0:
-            return DeviceVolume(vol, device)
+            return out
         # the views' windows in one padded stack (their shapes alongside)
         shapes = np.array([im.shape for im in imgs], np.int64)
         stack = np.full((nv, int(shapes[:, 0].max()), int(shapes[:, 1].max())), np.nan, np.float32)
         for v, im in enumerate(imgs):
             stack[v, : im.shape[0], : im.shape[1]] = im
-        d_lo = cuda.to_device(lo)
-        samp = cuda.device_array((nv, ny, nx, ns), np.float32)
-        _run(sample_k, _launch(ny * nx * ns),
-            cuda.to_device(stack), cuda.to_device(shapes), cuda.to_device(np.ascontiguousarray(lat_r, np.float64)),
-            cuda.to_device(np.ascontiguousarray(lat_c, np.float64)), int(stride), int(k0), float(dh),
-            cuda.to_device(np.ascontiguousarray(href, np.float64)), float(step), int(origin[0]), int(origin[1]),
-            int(nodes0[0]), int(nodes0[1]), cuda.to_device(np.asarray(win_r, np.float64)),
-            cuda.to_device(np.asarray(win_c, np.float64)), bool(cubic), d_lo, cuda.to_device(hi), samp,
+        d_lo = space.upload("lo", lo)
+        samp = space.take("samples", (nv, ny, nx, ns), np.float32)
+        _run(sample_k, _launch(ny * nx * ns), stream,
+             space.upload("images", stack), space.upload("shapes", shapes),
+             space.upload("lat_r", np.asarray(lat_r, np.float64)), space.upload("lat_c", np.asarray(lat_c, np.float64)),
+             int(stride), int(k0), float(dh), space.upload("href", np.asarray(href, np.float64)), float(step),
+             int(origin[0]), int(origin[1]), int(nodes0[0]), int(nodes0[1]),
+             space.upload("win_r", np.asarray(win_r, np.float64)), space.upload("win_c", np.asarray(win_c, np.float64)),
+             bool(cubic), d_lo, space.upload("hi", hi), samp,
         )
-        _run(zncc_k, _launch(ny * nx * nd),
-            samp, d_lo, cuda.to_device(base), d_nvalid, int(half),
-            cuda.to_device(np.array([p[0] for p in pairs], np.int64)),
-            cuda.to_device(np.array([p[1] for p in pairs], np.int64)), cuda.to_device(pw), float(eps), vol,
+        _run(zncc_k, _launch(ny * nx * nd), stream,
+             samp, d_lo, d_base, d_nvalid, int(half),
+             space.upload("pair_u", np.array([p[0] for p in pairs], np.int64)),
+             space.upload("pair_v", np.array([p[1] for p in pairs], np.int64)), space.upload("pair_w", pw),
+             float(eps), vol,
         )
-        del samp
-    return DeviceVolume(vol, device)
+        # queued work only reads the scratch buffers: the next take (same
+        # stream) is ordered after it
+        space.give("samples", "images", "shapes", "lat_r", "lat_c", "href", "win_r", "win_c", "lo", "hi",
+                   "pair_u", "pair_v", "pair_w")
+    return out
 
 
 def _block_threads(nd: int) -> int:
@@ -236,39 +344,52 @@ def _block_threads(nd: int) -> int:
     return t
 
 
-def _aggregated(cost, P1, P2, base, nvalid, invalid_cost, origin, restart_period, device):
-    """``(S, cost, nvalid)`` on the device after the 8 paths."""
-    from tiledsm.match.sgm import checked_volume
+def _device_inputs(cost, P1, P2, base, nvalid, space):
+    """``(d_cost, d_base, d_nvalid)`` on the device for the paths: a
+    :class:`DeviceVolume`'s own (its base and nvalid reused when these are
+    the arrays it was made with), or a numpy volume checked by
+    :func:`tiledsm.match.sgm.checked_volume` and uploaded."""
+    if not isinstance(cost, DeviceVolume):
+        from tiledsm.match.sgm import checked_volume
 
-    on_device = isinstance(cost, DeviceVolume)
-    if on_device:
-        # the checks of checked_volume without a host copy of the volume
-        ny, nx, nd = cost.shape
-        if P2 < P1 or P1 < 0:
-            raise ValueError(f"aggregate: need 0 <= P1 <= P2, got P1={P1}, P2={P2}")
-        b = np.zeros((ny, nx), np.int64) if base is None else np.ascontiguousarray(base, np.int64)
-        n = np.full((ny, nx), nd, np.int64) if nvalid is None else np.clip(np.asarray(nvalid, np.int64), 0, nd)
-        if b.shape != (ny, nx) or n.shape != (ny, nx):
-            raise ValueError(f"aggregate: base and nvalid must be {(ny, nx)}, got {b.shape} and {n.shape}")
-        host = None
-    else:
         host, b, n = checked_volume(cost, P1, P2, base, nvalid)
-        ny, nx, nd = host.shape
-    shape = (ny, nx, nd)
+        return space.upload("vol_in", host), space.upload("base_in", b), space.upload("nvalid_in", n)
+    if cost.stream is not None and cost.stream is not space.stream:
+        cost.stream.synchronize()  # made by another thread
+    ny, nx, nd = cost.shape
+    if P2 < P1 or P1 < 0:
+        raise ValueError(f"aggregate: need 0 <= P1 <= P2, got P1={P1}, P2={P2}")
+    if base is cost.base and nvalid is cost.nvalid and cost.d_base is not None:
+        # nvalid <= nd holds: nd is the volume's maximum
+        return cost.data, cost.d_base, cost.d_nvalid
+    b = np.zeros((ny, nx), np.int64) if base is None else np.ascontiguousarray(base, np.int64)
+    n = np.full((ny, nx), nd, np.int64) if nvalid is None else np.clip(np.asarray(nvalid, np.int64), 0, nd)
+    if b.shape != (ny, nx) or n.shape != (ny, nx):
+        raise ValueError(f"aggregate: base and nvalid must be {(ny, nx)}, got {b.shape} and {n.shape}")
+    return cost.data, space.upload("base_in", b), space.upload("nvalid_in", n)
+
+
+def _aggregated(cost, P1, P2, base, nvalid, invalid_cost, origin, restart_period, space):
+    """``(S, cost, nvalid)`` on the device after the 8 paths, queued on
+    ``space``'s stream (``S`` in its ``"S"`` buffer)."""
     _, _, _, path_k, _ = _kernels()
-    cuda = _cuda()
-    d_cost = cost.data if on_device else cuda.to_device(host)
-    d_base = cuda.to_device(b)
-    d_n = cuda.to_device(n)
-    S = cuda.to_device(np.zeros(shape, np.float32))
+    d_cost, d_base, d_n = _device_inputs(cost, P1, P2, base, nvalid, space)
+    ny, nx, nd = d_cost.shape
+    S = space.take("S", (ny, nx, nd), np.float32)
+    # one buffer of (line, slot, candidate) path costs for every direction:
+    # launches on one stream run in order
+    buf = space.take("paths", (nx + ny - 1, 2, nd), np.float32)
     threads = _block_threads(nd)
     gi0, gj0, period = int(origin[0]), int(origin[1]), int(restart_period)
     p1, p2, inv = np.float32(P1), np.float32(P2), np.float32(invalid_cost)
-    for di, dj in DIRECTIONS:
+    for d, (di, dj) in enumerate(DIRECTIONS):
         lines = ny if di == 0 else nx if dj == 0 else nx + ny - 1
-        buf = cuda.device_array((lines, 2, nd), np.float32)
-        # the in-row paths keep their minimum in float64, the others in float32
-        _run(path_k, (lines, threads), d_cost, d_base, d_n, p1, p2, inv, di, dj, gi0, gj0, period, di != 0, S, buf)
+        # the in-row paths keep their minimum in float64, the others in
+        # float32; the first direction writes S (every candidate of every
+        # cell: its lines cover the block), the others add to it
+        _run(path_k, (lines, threads), space.stream, d_cost, d_base, d_n, p1, p2, inv, di, dj, gi0, gj0, period,
+             di != 0, d == 0, S, buf)
+    space.give("paths", "vol_in")
     return S, d_cost, d_n
 
 
@@ -282,12 +403,16 @@ def aggregate(
     numpy array; ``cost`` a numpy volume or a :class:`DeviceVolume`."""
     if guide is not None:
         raise ValueError("the cuda kernel aggregates without a guide image")
-    with _Selected(device):
-        S, _, d_n = _aggregated(cost, P1, P2, base, nvalid, invalid_cost, origin, restart_period, device)
-        S = S.copy_to_host()
-        # absent candidates: +inf, as the CPU passes sum them
-        S[np.arange(S.shape[2]) >= d_n.copy_to_host()[..., None]] = np.inf
-        return S
+    with _Selected(device) as cuda:
+        space = _workspace(cuda, _device_index(device))
+        S, _, d_n = _aggregated(cost, P1, P2, base, nvalid, invalid_cost, origin, restart_period, space)
+        host_S = S.copy_to_host(stream=space.stream)
+        n = d_n.copy_to_host(stream=space.stream)
+        space.stream.synchronize()
+        space.give("S", "base_in", "nvalid_in")
+    # absent candidates: +inf, as the CPU passes sum them
+    host_S[np.arange(host_S.shape[2]) >= n[..., None]] = np.inf
+    return host_S
 
 
 def best(
@@ -296,11 +421,19 @@ def best(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`aggregate` then the winners on the GPU: the arguments and
     results of :func:`tiledsm.match.sgm.aggregate_best` (``index, smin,
-    ratio, cbest``), only these four ``(ny, nx)`` arrays copied back."""
+    ratio, cbest``), one ``(4, ny, nx)`` array copied back. A
+    :class:`DeviceVolume`'s buffer goes back to its workspace."""
     _, _, _, _, winner_k = _kernels()
     with _Selected(device) as cuda:
-        S, d_cost, d_n = _aggregated(cost, P1, P2, base, nvalid, invalid_cost, origin, restart_period, device)
+        space = _workspace(cuda, _device_index(device))
+        S, d_cost, d_n = _aggregated(cost, P1, P2, base, nvalid, invalid_cost, origin, restart_period, space)
         ny, nx, _ = S.shape
-        out = [cuda.device_array((ny, nx), np.float32) for _ in range(4)]
-        _run(winner_k, _launch(ny * nx), S, d_cost, d_n, *out)
-        return tuple(o.copy_to_host() for o in out)
+        out = space.take("winners", (4, ny, nx), np.float32)
+        _run(winner_k, _launch(ny * nx), space.stream, S, d_cost, d_n, out[0], out[1], out[2], out[3])
+        host = out.copy_to_host(stream=space.stream)
+        space.stream.synchronize()
+        space.give("S", "winners", "base_in", "nvalid_in")
+        if isinstance(cost, DeviceVolume):
+            space.restore(cost.held)
+            cost.held = []
+    return host[0], host[1], host[2], host[3]
