@@ -534,7 +534,7 @@ EMITTERS = {
     "tiledsm/compare/plan.py": ("compare", "run"),
     "tiledsm/sr/recipe.py": ("sr", "run"),
     "tiledsm/compare/recipe.py": ("compare", "run"),
-    "tiledsm/plan/core.py:check_earlier_run": ("dsm", "run", "sr", "compare"),
+    "tiledsm/plan/core.py:check_earlier_run": ("dsm", "run", "sr", "compare", "orient", "displace"),
     "tiledsm/ortho/plan.py": ("ortho", "run"),
     "tiledsm/orient/plan.py": ("orient", "run"),
     "tiledsm/io/lock.py:_refuse_or_take_over": ("dsm", "run", "compare", "ortho", "orient"),

@@ -11,12 +11,15 @@ The rendered 512-px pair with injected biases of tests/orient/conftest.py,
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 import yaml
 from orient_cases import write_gcp_files
 
-from tests.run_contract import kill, ok, refused_while_held, run, start, temporaries, tiledsm, wait_until
+from tests.run_contract import (
+    error_line, kill, ok, refused_while_held, run, start, temporaries, tiledsm, wait_until,
+)
 
 #: products compared byte for byte (orient.json apart: it holds timings)
 EXACT = ("view_0.tif", "view_0_RPC.TXT", "view_1.tif", "view_1_RPC.TXT", "residuals.csv")
@@ -116,3 +119,16 @@ def test_messages_name_the_option_or_the_recipe_field(case, tmp_path, capsys):
     assert main(["run", str(recipe), "--out", str(tmp_path / "r")]) == 2
     assert "images: one image needs orient.gcps" in capsys.readouterr().err
     assert not (tmp_path / "o").exists() and not (tmp_path / "r").exists()
+
+
+def test_a_run_of_other_options_is_refused_in_a_finished_folder(case, uninterrupted, tmp_path):
+    # a finished run of other options: refused without --overwrite, its
+    # products untouched; with --overwrite the new run replaces them
+    out = tmp_path / "o"
+    shutil.copytree(uninterrupted, out)
+    before = {n: (out / n).read_bytes() for n in EXACT}
+    line = error_line(run(orient_cmd(case, out, "--model", "shift")), "orient")
+    assert f"{out}: --out: holds a run of other inputs or options" in line and "--overwrite" in line
+    assert {n: (out / n).read_bytes() for n in EXACT} == before
+    ok(run(orient_cmd(case, out, "--model", "shift", "--overwrite")))
+    assert yaml.safe_load((out / "recipe.resolved.yaml").read_text())["orient"]["model"] == "shift"

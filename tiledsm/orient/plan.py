@@ -16,7 +16,9 @@ from typing import Any, Sequence
 
 from tiledsm.errors import InvalidOptionError
 from tiledsm.orient.recipe import OrientRecipe
-from tiledsm.plan.core import RECIPE_NAMES, FieldNames, InputInfo, Plan, existing_file, readable_raster, namer
+from tiledsm.plan.core import (
+    RECIPE_NAMES, FieldNames, InputInfo, Plan, check_earlier_run, existing_file, namer, readable_raster,
+)
 
 __all__ = ["plan_orient", "PreparedOrientation", "ORIENT_PRODUCTS", "orient_products"]
 
@@ -53,8 +55,11 @@ def plan_orient(plan: Plan, recipe: OrientRecipe, cluster=None, *, overwrite: bo
     inside their images, and without tie points but with a ``model`` each
     image has the GCPs the model needs; the DEM (and geoid) covers the
     images. :attr:`Plan.product` is a :class:`PreparedOrientation`. An
-    orientation is fast: a rerun computes it again (``overwrite`` changes
-    nothing), and the products of an earlier run are withdrawn before it.
+    orientation is fast: a rerun of the same recipe computes it again, its
+    earlier products withdrawn first; a folder holding a run of other
+    inputs or options is refused without ``overwrite``
+    (:func:`~tiledsm.plan.core.check_earlier_run`, as ``sr`` and
+    ``compare``).
 
     Returns
     -------
@@ -135,6 +140,7 @@ def plan_orient(plan: Plan, recipe: OrientRecipe, cluster=None, *, overwrite: bo
     plan.height_range = h_range
     plan.notes.append("heights: the RPCs' validity range (the tie points narrow it from overviews)")
     plan.notes.append("memory per worker is not estimated for orient")
+    check_earlier_run(recipe, plan.out, overwrite)
     plan.reuse = _replaced(plan.out, orient_products(paths))
     plan.product = PreparedOrientation(tuple(paths), tuple(rpcs), tuple(shapes), reference, files["gcps"],
                                        files["check_points"])
