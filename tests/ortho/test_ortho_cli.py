@@ -48,6 +48,49 @@ def test_cli_errors(ortho_scene, tmp_path, capsys):
     assert not (tmp_path / "x" / "ortho.tif").exists()
 
 
+KNOWN = "known: ['bl', 'cr', 'cs', 'nn']"
+
+
+@pytest.mark.parametrize("command, extra, line", [
+    ("ortho", ["--dsm", "d.tif", "--kernel", "zz"],
+     f"tiledsm ortho: error: --kernel: unknown interpolation kernel 'zz'; {KNOWN}"),
+    ("ortho", ["--dsm", "d.tif", "--occlusion-tolerance", "-1"],
+     "tiledsm ortho: error: --occlusion-tolerance: Input should be greater than or equal to 0"),
+    # an image orthorectified before the correlation: the same kernel field
+    ("displace", ["b.tif", "--dsm-pre", "d.tif", "--kernel", "zz"],
+     f"tiledsm displace: error: --kernel: unknown interpolation kernel 'zz'; {KNOWN}"),
+])
+def test_a_bad_parameter_is_one_line_naming_its_option(tmp_path, capsys, command, extra, line):
+    """The parameters' own checks (the spec's field validators) refuse a
+    bad value before any file is opened: exit 2, one line, the option."""
+    out = tmp_path / "o"
+    assert main([command, str(tmp_path / "a.tif"), *extra, "--out", str(out)]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [line]
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("pipeline, section, fields, located", [
+    ("ortho", "ortho", {"step": 0}, "ortho.step: Input should be greater than 0"),
+    ("ortho", "ortho", {"kernel": "zz"}, f"ortho.kernel: Value error, unknown interpolation kernel 'zz'; {KNOWN}"),
+    ("displace", "input", {"kernel": "zz"}, f"input.kernel: Value error, unknown interpolation kernel 'zz'; {KNOWN}"),
+])
+def test_a_bad_parameter_in_a_recipe_names_its_field(tmp_path, capsys, pipeline, section, fields, located):
+    """``tiledsm run`` of a recipe with a bad ortho parameter (``step`` has
+    no option: recipe only) names the recipe field."""
+    import yaml
+
+    inputs = {"ortho": {"image": "a.tif", "dsm": "d.tif"}, "displace": {"pre": "a.tif", "post": "b.tif"}}[pipeline]
+    recipe = {"pipeline": pipeline, "input": inputs}
+    recipe[section] = {**recipe.get(section, {}), **fields}
+    path = tmp_path / "recipe.yaml"
+    path.write_text(yaml.safe_dump(recipe))
+    assert main(["run", str(path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("tiledsm run: error: ") and located in err[0], err
+    assert "--kernel" not in err[0]
+    assert not (tmp_path / "o").exists()
+
+
 @pytest.mark.slow
 @pytest.mark.realdata
 def test_s2p_pair_orthos_agree_on_tiledsm_dsm(tmp_path):

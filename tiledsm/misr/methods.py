@@ -31,7 +31,8 @@ from tiledsm.geometry.camera import GroundShifted
 from tiledsm.geometry.grid import GroundGrid
 from tiledsm.misr.ibp import PSF, Observations, ibp
 from tiledsm.misr.register import Registration, register
-from tiledsm.ortho.rectify import ImageSource, OrthoParams, orthorectify
+from tiledsm.ortho.recipe import OrthoSpec
+from tiledsm.ortho.rectify import ImageSource, orthorectify
 
 __all__ = ["MISRError", "SRInputs", "reference_index", "radial_select", "ortho_hr", "sr_s", "sr_r", "sr_o",
            "observations"]
@@ -124,7 +125,7 @@ def ortho_hr(inputs: SRInputs, index: int, kernel: str, camera=None) -> np.ndarr
     through ``camera`` (default: the image's)."""
     cam = camera if camera is not None else inputs.cameras[index]
     src = ImageSource.from_array(inputs.frames[index], cam, name=f"image {index}")
-    o = orthorectify(src, inputs.dsm_array(), OrthoParams(kernel=kernel, occlusion=inputs.occlusion),
+    o = orthorectify(src, inputs.dsm_array(), OrthoSpec(kernel=kernel, occlusion=inputs.occlusion),
                      chunk=inputs.grid.chunk)
     return o.values
 

@@ -2,7 +2,8 @@
 of any image (RPC or frame camera) on a DSM, with occlusion.
 
 Public API: :data:`KERNELS`, :func:`get_kernel`, :func:`sample` (kernels);
-:func:`orthorectify` and :class:`OrthoParams` (:mod:`tiledsm.ortho.rectify`).
+:func:`orthorectify` (:mod:`tiledsm.ortho.rectify`), its parameters
+:class:`~tiledsm.ortho.recipe.OrthoSpec` (the recipe's ``ortho:`` section).
 
 The stage (``pipeline: ortho``, ``tiledsm ortho``): its recipe
 (:mod:`tiledsm.ortho.recipe`), its plan (:mod:`tiledsm.ortho.plan`), its

@@ -29,7 +29,7 @@ Conventions
   which is what makes tiled orthorectification exact.
 
 The kernels live in :data:`KERNELS` (explicit registrations, duplicates
-refused); :func:`get_kernel` resolves a name.
+refused); :func:`get_kernel` resolves a name, :func:`known_kernel` checks one.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ import numpy as np
 
 from tiledsm.errors import InvalidOptionError
 
-__all__ = ["Kernel", "KERNELS", "register_kernel", "get_kernel", "cubic_weight", "sample"]
+__all__ = ["Kernel", "KERNELS", "register_kernel", "known_kernel", "get_kernel", "cubic_weight", "sample"]
 
 # kernel families understood by the numba sampler
 _NEAREST, _LINEAR, _CUBIC = 0, 1, 2
@@ -96,6 +96,21 @@ register_kernel(Kernel("cr", _CUBIC, a=-1.0, label="CR"))
 register_kernel(Kernel("cs", _CUBIC, a=-0.5, label="CS"))
 
 
+def known_kernel(name: str) -> str:
+    """``name``, unchanged, when it names a registered kernel (any case):
+    the validator of a model's kernel field (the model reports the error
+    at the field, :data:`tiledsm.ortho.recipe.KernelName`).
+
+    Raises
+    ------
+    ValueError
+        Unknown name; the message lists the known kernels.
+    """
+    if str(name).lower() not in KERNELS:
+        raise ValueError(f"unknown interpolation kernel {name!r}; known: {sorted(KERNELS)}")
+    return name
+
+
 def get_kernel(name: str | Kernel, field: str = "kernel") -> Kernel:
     """The registered kernel called ``name`` (case-insensitive).
 
@@ -106,10 +121,10 @@ def get_kernel(name: str | Kernel, field: str = "kernel") -> Kernel:
     """
     if isinstance(name, Kernel):
         return name
-    k = KERNELS.get(str(name).lower())
-    if k is None:
-        raise InvalidOptionError(f"{field}: unknown interpolation kernel {name!r}; known: {sorted(KERNELS)}")
-    return k
+    try:
+        return KERNELS[known_kernel(str(name)).lower()]
+    except ValueError as exc:
+        raise InvalidOptionError(f"{field}: {exc}") from None
 
 
 @numba.njit(nogil=True, cache=True, inline="always")

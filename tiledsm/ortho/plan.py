@@ -55,10 +55,8 @@ def plan_ortho(plan: Plan, recipe: OrthoRecipe, cluster=None, *, overwrite: bool
     if not dsm_path.endswith(".zarr"):
         readable_raster(dsm_path, name("input.dsm"))
     camera = existing_file(inp.camera, name("input.camera")) if inp.camera else None
-    ortho = ortho_files(
-        img, dsm_path, kernel=spec.kernel, resolution=grid.resolution, chunk=grid.chunk, camera_file=camera,
-        bounds=grid.bounds, crs=grid.crs, occlusion=spec.occlusion, occlusion_tolerance=spec.occlusion_tolerance,
-    )
+    ortho = ortho_files(img, dsm_path, spec, resolution=grid.resolution, chunk=grid.chunk, camera_file=camera,
+                        bounds=grid.bounds, crs=grid.crs)
     a = ortho.attrs
     plan.inputs.append(InputInfo(name("input.image"), img, f"camera: {a.get('camera_source', '?')}"))
     plan.inputs.append(InputInfo(name("input.dsm"), dsm_path))
@@ -76,7 +74,7 @@ def plan_ortho(plan: Plan, recipe: OrthoRecipe, cluster=None, *, overwrite: bool
         plan.warn(f"{img}: {name('input.image')} sees only {seen:.0%} of the ortho grid (the rest is NaN)")
     plan.notes.append(f"the image sees ~{seen:.0%} of the grid (17 x 17 samples at the mid height)")
     plan.notes.append("memory per worker is not estimated for ortho")
-    fp = ortho_fingerprint(ortho, img, dsm_path, camera, recipe.ortho.model_dump(mode="json"))
+    fp = ortho_fingerprint(ortho, img, dsm_path, camera, spec)
     ortho.attrs["fingerprint"] = json.dumps(fp, sort_keys=True)
     plan.reuse, plan.withdraw = ortho_reuse(plan.out, ortho, fp, overwrite)
     plan.product = ortho

@@ -13,19 +13,29 @@ Example::
     ortho:
       kernel: cs               # nn | bl | cr | cs
 
+:class:`OrthoSpec` (the ``ortho:`` section) is also the parameter type of
+:func:`tiledsm.ortho.rectify.orthorectify`: the ortho grid's refinement
+(``factor``) is not in it, as it follows from ``grid.resolution`` and the
+DSM's cell (:func:`tiledsm.ortho.stage.resolution_factor`).
+
 Relative paths are resolved against the recipe's folder; heights are the
 camera's datum (RPC: WGS84 ellipsoidal).
 """
 
 from __future__ import annotations
 
-from typing import Literal, Optional
+from typing import Annotated, Literal, Optional
 
-from pydantic import Field
+from pydantic import AfterValidator, Field
 
+from tiledsm.ortho.kernels import known_kernel
 from tiledsm.recipes import ClusterSpec, StrictModel, option
 
-__all__ = ["OrthoInput", "OrthoGrid", "OrthoSpec", "OrthoRecipe"]
+__all__ = ["KernelName", "OrthoInput", "OrthoGrid", "OrthoSpec", "OrthoRecipe"]
+
+#: a field naming an interpolation kernel of :data:`tiledsm.ortho.kernels.KERNELS`
+#: (any case, kept as written); an unknown name is an error at the field
+KernelName = Annotated[str, AfterValidator(known_kernel)]
 
 
 class OrthoInput(StrictModel):
@@ -51,14 +61,17 @@ class OrthoGrid(StrictModel):
 
 
 class OrthoSpec(StrictModel):
-    """Resampling and occlusion (:class:`tiledsm.ortho.rectify.OrthoParams`)."""
+    """Resampling and occlusion: the parameters of
+    :func:`tiledsm.ortho.rectify.orthorectify` (the ``ortho:`` section)."""
 
-    kernel: str = Field("bl", description="interpolation kernel: nn, bl, cr (cubic a=-1), cs (cubic a=-0.5)",
-                        json_schema_extra=option("--kernel"))
+    kernel: KernelName = Field("bl", description="interpolation kernel: nn, bl, cr (cubic a=-1), cs (cubic a=-0.5)",
+                               json_schema_extra=option("--kernel"))
     occlusion: bool = Field(True, description="set cells hidden from the view to NaN",
                             json_schema_extra=option("--no-occlusion"))
-    occlusion_tolerance: Optional[float] = Field(None, ge=0, description="metres (default: one DSM cell)",
-                                                 json_schema_extra=option("--occlusion-tolerance"))
+    occlusion_tolerance: Optional[float] = Field(
+        None, ge=0, description="metres the DSM must rise above a line of sight to hide its cell (default: one "
+        "DSM cell, which absorbs DSM noise on steep slopes)", json_schema_extra=option("--occlusion-tolerance"))
+    step: float = Field(0.5, gt=0, description="ray-marching step of the occlusion test, DSM cells")
 
 
 class OrthoRecipe(StrictModel):

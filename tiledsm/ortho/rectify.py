@@ -17,6 +17,10 @@ For every output cell (one dask task per chunk of the ortho grid):
    by ray casting). The ray direction is the camera's height parallax
    (:func:`tiledsm.geometry.camera.height_parallax`), so any camera works.
 
+The parameters are :class:`tiledsm.ortho.recipe.OrthoSpec` (the recipe's
+``ortho:`` section); the refinement ``factor`` is an argument of its own,
+derived from the ortho grid's resolution.
+
 Tiling: the DSM is read with a halo of ``ceil((hmax - hmin) |v|max / res) + 2``
 cells (``hmin``, ``hmax`` the DSM's height range, ``|v|max`` the largest
 tangent of the off-nadir angle over the grid): a ray leaves the halo only
@@ -54,44 +58,9 @@ from tiledsm.geometry.footprint import to_lonlat
 from tiledsm.geometry.grid import GroundGrid
 from tiledsm.io.grids import grid_like
 from tiledsm.ortho.kernels import get_kernel, sample
+from tiledsm.ortho.recipe import OrthoSpec
 
-__all__ = ["OrthoParams", "ImageSource", "ortho_grid", "orthorectify", "ortho_halo", "check_sees"]
-
-
-@dataclass(frozen=True)
-class OrthoParams:
-    """Parameters of orthorectification.
-
-    Attributes
-    ----------
-    kernel : str
-        Interpolation kernel name (``nn``, ``bl``, ``cr``, ``cs``).
-    factor : int
-        Ortho cells per DSM cell side (ortho resolution = DSM resolution
-        / factor), >= 1.
-    occlusion : bool
-        Set cells hidden from the view to NaN.
-    occlusion_tolerance : float or None
-        Metres the DSM must rise above a line of sight to hide the cell;
-        None: one DSM cell size (absorbs DSM noise on steep slopes).
-    step : float
-        Ray-marching step, DSM cells.
-    """
-
-    kernel: str = "bl"
-    factor: int = 1
-    occlusion: bool = True
-    occlusion_tolerance: float | None = None
-    step: float = 0.5
-
-    def __post_init__(self) -> None:
-        get_kernel(self.kernel)
-        if int(self.factor) != self.factor or self.factor < 1:
-            raise InvalidOptionError(f"factor: must be an integer >= 1, got {self.factor!r}")
-        if not (self.step > 0):
-            raise InvalidOptionError(f"step: must be > 0 DSM cells, got {self.step!r}")
-        if self.occlusion_tolerance is not None and not self.occlusion_tolerance >= 0:
-            raise InvalidOptionError(f"occlusion_tolerance: must be >= 0 m, got {self.occlusion_tolerance!r}")
+__all__ = ["ImageSource", "ortho_grid", "orthorectify", "ortho_halo", "check_sees"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -293,10 +262,11 @@ def _fine_heights(block: np.ndarray, f: int, off: tuple[int, int], core: tuple[i
 
 
 def _ortho_block(block, *, source: ImageSource, grid: GroundGrid, dsm_shape, core_chunks, halo: tuple[int, int],
-                 params: OrthoParams, zmax: float, block_id=None) -> np.ndarray:
-    """One chunk of the ortho: ``block`` is the DSM core ``block_id`` plus
-    ``halo = (rows, cols)`` cells (NaN beyond the DSM)."""
-    f = int(params.factor)
+                 params: OrthoSpec, factor: int, zmax: float, block_id=None) -> np.ndarray:
+    """One chunk of the ortho, ``factor`` times finer than the DSM: ``block``
+    is the DSM core ``block_id`` plus ``halo = (rows, cols)`` cells (NaN
+    beyond the DSM)."""
+    f = factor
     bi, bj = block_id
     R0, C0 = sum(core_chunks[0][:bi]), sum(core_chunks[1][:bj])
     nr, nc = core_chunks[0][bi], core_chunks[1][bj]
@@ -352,14 +322,15 @@ def _as_height(dsm) -> xr.DataArray:
 def orthorectify(
     source: ImageSource,
     dsm: xr.DataArray | xr.Dataset,
-    params: OrthoParams = OrthoParams(),
+    params: OrthoSpec = OrthoSpec(),
     *,
+    factor: int = 1,
     chunk: int | None = None,
     bounds: tuple[float, float, float, float] | None = None,
     crs: str | None = None,
     h_range: tuple[float, float] | None = None,
 ) -> xr.DataArray:
-    """Lazy orthoimage of ``source`` on the DSM's grid refined ``params.factor`` times.
+    """Lazy orthoimage of ``source`` on the DSM's grid refined ``factor`` times.
 
     Parameters
     ----------
@@ -369,9 +340,13 @@ def orthorectify(
         Heights (the camera's datum), ``(y, x)`` on a north-up projected
         grid with rioxarray CRS/transform, NaN = no height; a Dataset's
         ``height`` variable.
-    params : OrthoParams
+    params : OrthoSpec
+        Kernel, occlusion, its tolerance and ray-marching step.
+    factor : int
+        Ortho cells per DSM cell side (ortho resolution = DSM resolution
+        / factor), >= 1.
     chunk : int, optional
-        Ortho chunk side, cells (multiple of ``params.factor``; default the
+        Ortho chunk side, cells (multiple of ``factor``; default the
         DSM's chunk times the factor).
     bounds : (left, bottom, right, top), optional
         Restrict the ortho to this box (DSM CRS; snapped outward to DSM
@@ -390,6 +365,8 @@ def orthorectify(
 
     Raises
     ------
+    InvalidOptionError
+        ``factor`` is not an integer >= 1.
     GridError
         Mismatched CRS, ``bounds`` outside the DSM, no height in the region.
     NoOverlapError
@@ -397,8 +374,11 @@ def orthorectify(
     """
     import rioxarray  # noqa: F401
 
+    if int(factor) != factor or factor < 1:
+        raise InvalidOptionError(f"factor: must be an integer >= 1, got {factor!r}")
+    f = int(factor)
     height = _as_height(dsm)
-    dgrid = grid_like(height, chunk=chunk // params.factor if chunk else None)
+    dgrid = grid_like(height, chunk=chunk // f if chunk else None)
     if crs is not None:
         from pyproj import CRS
 
@@ -424,7 +404,7 @@ def orthorectify(
     if not all(np.isfinite(h_range)):
         raise GridError(f"DSM{_name(height)}: no height in the region (all NaN)")
     seen = check_sees(source, dgrid, h_range, _name(height))
-    grid = ortho_grid(dgrid, params.factor, chunk or dgrid.chunk * params.factor)
+    grid = ortho_grid(dgrid, f, chunk or dgrid.chunk * f)
     halo, vmax = ortho_halo(source.camera, dgrid, h_range) if params.occlusion else (0, 0.0)
     # per axis: a halo no deeper than the DSM (beyond it all is NaN) and
     # chunks at least as wide as the halo (dask's overlap needs it)
@@ -433,10 +413,9 @@ def orthorectify(
     depth = tuple(min(halo, n) for n in dgrid.shape)
     core = data.rechunk(tuple(level_chunks(n, max(dgrid.chunk, d), d) for n, d in zip(dgrid.shape, depth)))
     blocks = da.overlap.overlap(core, depth={0: depth[0], 1: depth[1]}, boundary=np.nan) if halo else core
-    f = int(params.factor)
     out = blocks.map_blocks(
         _ortho_block, source=source, grid=grid, dsm_shape=dgrid.shape, core_chunks=core.chunks, halo=depth,
-        params=params, zmax=float(h_range[1]), chunks=tuple(tuple(c * f for c in cs) for cs in core.chunks),
+        params=params, factor=f, zmax=float(h_range[1]), chunks=tuple(tuple(c * f for c in cs) for cs in core.chunks),
         dtype=np.float32, meta=np.empty((0, 0), np.float32), name="ortho",
     ).rechunk(grid.chunks)
     result = xr.DataArray(out, dims=("y", "x"), coords=grid.coords(), name="ortho")

@@ -21,7 +21,8 @@ import xarray as xr
 
 from tiledsm.cluster import ClusterConfig, compute_context, compute_with_progress
 from tiledsm.errors import InvalidOptionError
-from tiledsm.ortho.rectify import ImageSource, OrthoParams, orthorectify
+from tiledsm.ortho.recipe import OrthoSpec
+from tiledsm.ortho.rectify import ImageSource, orthorectify
 
 __all__ = [
     "open_source", "matched_camera", "open_dsm", "resolution_factor", "ortho_files", "ortho_fingerprint",
@@ -105,42 +106,40 @@ def resolution_factor(dsm_resolution: float, resolution: float | None, option: s
 def ortho_files(
     image: str | Path,
     dsm: str | Path,
+    params: OrthoSpec = OrthoSpec(),
     *,
-    kernel: str = "bl",
     resolution: float | None = None,
     chunk: int = 512,
     camera_file: str | Path | None = None,
     bounds: tuple[float, float, float, float] | None = None,
     crs: str | None = None,
-    occlusion: bool = True,
-    occlusion_tolerance: float | None = None,
 ) -> xr.DataArray:
-    """Lazy ortho of an image file on a DSM file (see :func:`orthorectify`);
-    ``resolution`` (metres) must divide the DSM's cell size. The camera is
-    :func:`open_source`'s (on a tiledsm ``dsm.zarr``, an image the DSM was
-    made from keeps the RPC it was matched with)."""
+    """Lazy ortho of an image file on a DSM file with ``params`` (see
+    :func:`orthorectify`); ``resolution`` (metres) must divide the DSM's
+    cell size. The camera is :func:`open_source`'s (on a tiledsm
+    ``dsm.zarr``, an image the DSM was made from keeps the RPC it was
+    matched with)."""
     from tiledsm.io.grids import grid_like
-    from tiledsm.ortho.kernels import get_kernel
 
-    get_kernel(kernel, field="--kernel")
     source = open_source(image, camera_file, dsm=dsm)
     height = open_dsm(dsm)
     factor = resolution_factor(grid_like(height).resolution, resolution)
     if chunk % factor:
         raise InvalidOptionError(f"--chunk: must be a multiple of the resolution factor {factor}, got {chunk}")
-    params = OrthoParams(kernel=kernel, factor=factor, occlusion=occlusion, occlusion_tolerance=occlusion_tolerance)
-    return orthorectify(source, height, params, chunk=chunk, bounds=bounds, crs=crs)
+    return orthorectify(source, height, params, factor=factor, chunk=chunk, bounds=bounds, crs=crs)
 
 
-def ortho_fingerprint(ortho: xr.DataArray, image: str, dsm: str, camera_file: str | None, params: dict) -> dict:
+def ortho_fingerprint(ortho: xr.DataArray, image: str, dsm: str, camera_file: str | None,
+                      params: OrthoSpec) -> dict:
     """Everything that determines ``ortho`` (:func:`ortho_files` of these
     files), as plain JSON (:func:`tiledsm.provenance.fingerprint`): the
     identity of the image, of the DSM (a ``.zarr`` store: of its
     ``zarr.json``, which holds a tiledsm DSM's own fingerprint) and of the
     camera file; the RPC used (a sidecar's, or the one a DSM store matched
     the image with); the ortho grid and chunk; ``params`` (the kernel,
-    occlusion and its tolerance...); the package version and code. An ``ortho.zarr`` is resumed only under
-    the same fingerprint."""
+    occlusion, its tolerance and step: the ``ortho:`` section); the
+    package version and code. An ``ortho.zarr`` is resumed only under the
+    same fingerprint."""
     from tiledsm.geometry.rpc import RPC
     from tiledsm.provenance import fingerprint, input_identity
 
@@ -153,7 +152,8 @@ def ortho_fingerprint(ortho: xr.DataArray, image: str, dsm: str, camera_file: st
         rpc=camera if isinstance(camera, RPC) else None,  # a frame camera is its file's
         grid={"crs": str(ortho.rio.crs), "transform": list(t)[:6], "shape": list(ortho.shape),
               "chunk": int(ortho.chunks[0][0])},
-        params={**params, **{k: ortho.attrs[k] for k in ("kernel", "factor", "occlusion", "halo_cells")}},
+        params={**params.model_dump(mode="json"),
+                **{k: ortho.attrs[k] for k in ("kernel", "factor", "occlusion", "halo_cells")}},
     )
 
 

@@ -55,6 +55,7 @@ from typing import Literal, Optional
 import numpy as np
 from pydantic import Field
 
+from tiledsm.ortho.recipe import KernelName, OrthoSpec
 from tiledsm.recipes import ClusterSpec, OutputSpec, StrictModel, option
 from tiledsm.workflows.displacement import CorrelationSpec
 
@@ -73,7 +74,7 @@ class DisplaceInput(StrictModel):
     dsm_pre: Optional[str] = Field(None, description="DSM of the pre epoch: pre is orthorectified on it first "
                                    "(tiledsm.ortho, occlusion-aware)", json_schema_extra=option('--dsm-pre'))
     dsm_post: Optional[str] = Field(None, description="DSM of the post epoch: post is orthorectified on it first", json_schema_extra=option('--dsm-post'))
-    kernel: str = Field("cs", description="ortho interpolation kernel of images given with a DSM: nn, bl, cr, cs", json_schema_extra=option('--kernel'))
+    kernel: KernelName = Field("cs", description="ortho interpolation kernel of images given with a DSM: nn, bl, cr, cs", json_schema_extra=option('--kernel'))
 
 
 class DisplaceGrid(StrictModel):
@@ -119,7 +120,8 @@ def _lazy_ortho(recipe: DisplaceRecipe, key: str, names: dict):
     dsm = existing_file(dsm, names[f"input.dsm_{key}"])
     if not dsm.endswith(".zarr"):
         readable_raster(dsm, names[f"input.dsm_{key}"])
-    return ortho_files(image, dsm, kernel=recipe.input.kernel, chunk=min(recipe.grid.chunk, 512)).rename("ortho")
+    ortho = ortho_files(image, dsm, OrthoSpec(kernel=recipe.input.kernel), chunk=min(recipe.grid.chunk, 512))
+    return ortho.rename("ortho")
 
 
 def _header_of(ortho) -> dict:

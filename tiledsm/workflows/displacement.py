@@ -38,6 +38,7 @@ from typing import Literal, Optional
 import numpy as np
 from pydantic import Field, field_validator
 
+from tiledsm.ortho.recipe import KernelName, OrthoSpec
 from tiledsm.recipes import StrictModel, option
 
 __all__ = ["DisplacementSpec", "run_displacement"]
@@ -99,20 +100,20 @@ class DisplacementSpec(CorrelationSpec):
     """``displacement:`` of a deformation recipe (pixels of the ortho grid,
     which is the DSM grid)."""
 
-    kernel: str = Field("cs", description="ortho interpolation kernel: nn, bl, cr, cs")
+    kernel: KernelName = Field("cs", description="ortho interpolation kernel: nn, bl, cr, cs")
     view: int = Field(0, ge=0, description="which image of each pair is orthorectified (index in the pair)")
     chunk: int = Field(1024, ge=64, description="ortho pixels per chunk side for the correlation")
 
 
 def _orthos(spec: DisplacementSpec, pre_image: str, post_image: str, out: Path, cluster, cog: bool, quicklook: bool):
     """Both orthos, each on its own epoch's DSM store; returns their zarr stores."""
-    from tiledsm.ortho.rectify import OrthoParams, orthorectify
+    from tiledsm.ortho.rectify import orthorectify
     from tiledsm.ortho.stage import open_dsm, open_source, write_ortho_products
 
     reports = {}
     for name, image in (("pre", pre_image), ("post", post_image)):
         dsm = out / name / "dsm.zarr"
-        ortho = orthorectify(open_source(image, dsm=dsm), open_dsm(dsm), OrthoParams(kernel=spec.kernel))
+        ortho = orthorectify(open_source(image, dsm=dsm), open_dsm(dsm), OrthoSpec(kernel=spec.kernel))
         reports[name] = write_ortho_products(ortho, out / name, cluster=cluster, cog=cog, quicklook=quicklook)
         log.info("%s-event ortho of %s: %.1f %% valid", name, image, 100 * reports[name].get("valid_share", np.nan))
     return out / "pre" / "ortho.zarr", out / "post" / "ortho.zarr", reports
