@@ -168,8 +168,8 @@ def test_extractor_is_chosen_on_the_command_line(scene2, points, oriented, tmp_p
     assert rc == 0
     doc = json.loads((out / "orient.json").read_text())
     structural = oriented[1]
-    assert doc["params"]["tracks"]["extractor"] == "features"
-    assert structural["params"]["tracks"]["extractor"] == "structural"
+    assert doc["params"]["extractor"] == "features"
+    assert structural["params"]["extractor"] == "structural"
     print("tracks features / structural", doc["n_tracks"], structural["n_tracks"])
     assert doc["n_tracks"] != structural["n_tracks"]
     assert doc["check_rms_px"]["after"] < 0.1 and doc["tie_relative_rms_px"]["after"] < 0.2
