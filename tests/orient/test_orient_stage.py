@@ -149,8 +149,9 @@ def test_interrupted_rerun_leaves_no_report_of_the_earlier_run(scene2, points, o
         return copy(*a, **kw)
 
     monkeypatch.setattr(export, "copy_with_rpc", dies_at_the_second_image)
+    # other options than the finished run's: --overwrite replaces it
     rc = main(["orient", *map(str, biased), "--gcps", str(points[0]), "--out", str(out), "--no-tie-points",
-               "--model", "shift"])
+               "--model", "shift", "--overwrite"])
     assert rc == 130 and calls["n"] == 2
     # no report, and no RPC of the earlier run left to be taken for this one's: only the first image's new ones
     left = sorted(p.name for p in out.iterdir())
