@@ -51,7 +51,7 @@ from orient_cases import BIASES, relative_error  # noqa: E402
 
 from tiledsm.cli import main  # noqa: E402
 from tiledsm.io.cameras import find_camera  # noqa: E402
-from tiledsm.orient import OrientParams, ReferenceDEM, TrackParams, orient_images, write_orientation  # noqa: E402
+from tiledsm.orient import OrientSpec, ReferenceDEM, orient_images, write_orientation  # noqa: E402
 from tiledsm.orient.p2l import p2l_filter, ransac_filter  # noqa: E402
 from simulate import (  # noqa: E402
     biased_copies, corner_points, ground_points, project_all, write_points_csv,
@@ -104,13 +104,13 @@ def synthetic(views: int) -> dict:
     cl, ca, ch = ground_points(true[0], shape, (300, 400), 20, seed=2)
     write_points_csv(root / "checks.csv", names, true, cl, ca, ch, prefix="c", shape=shape)
     lon, lat, hh = ground_points(true[0], shape, (300, 400), 300, seed=3)
-    params = OrientParams(tracks=TrackParams(tile=256))
+    spec = OrientSpec(tile=256)
     out = {}
     before_rel = relative_error([find_camera(p)[0] for p in biased], true, lon, lat, hh)
     for case, gcps in (("gcp4", root / "gcps.csv"), ("ties", None)):
         t0 = time.perf_counter()
-        o = orient_images(biased, gcps, root / "checks.csv", params=params)
-        write_orientation(o, root / f"out_{case}", params)
+        o = orient_images(biased, gcps, root / "checks.csv", spec=spec)
+        write_orientation(o, root / f"out_{case}", spec)
         t = time.perf_counter() - t0
         vs_true = [_rms(np.stack(a.project(lon, lat, hh), -1) - np.stack(b.project(lon, lat, hh), -1))
                    for a, b in zip(o.rpcs_after, true)]
@@ -143,8 +143,8 @@ def synthetic(views: int) -> dict:
                 d.write(zz.astype(np.float32), 1)
             lonr, latr = true[0].ground_box((0, 512, 0, 512), h)
             dem = ReferenceDEM.open(dem_path, lonr, latr)
-            o = orient_images(biased, None, root / "checks.csv", dem=dem, params=params)
-            write_orientation(o, root / f"out_{case}", params)
+            o = orient_images(biased, None, root / "checks.csv", dem=dem, spec=spec)
+            write_orientation(o, root / f"out_{case}", spec)
             out[case] = {
                 "dem_cell_m": k * gsd,
                 "dsm_minus_truth": {**before, "after": _dsm_bias([root / f"out_{case}" / n for n in names],
@@ -201,10 +201,10 @@ def ventoux() -> dict:
         lonr, latr = rl.ground_box((0, 500, 0, 500), (300, 700))
         dem = ReferenceDEM.open(d / "srtm" / "N44E005.hgt", (lonr[0] - 0.02, lonr[1] + 0.02),
                                 (latr[0] - 0.02, latr[1] + 0.02), geoid=geoid)
-        params = OrientParams(tracks=TrackParams(tile=256))
+        spec = OrientSpec(tile=256)
         t0 = time.perf_counter()
-        o = orient_images(imgs, dem=dem, params=params)
-        write_orientation(o, root / case / "out", params)
+        o = orient_images(imgs, dem=dem, spec=spec)
+        write_orientation(o, root / case / "out", spec)
         t = time.perf_counter() - t0
         out[case] = {
             "terms": [dict(x) for x in o.terms], "models": [m.name for m in o.models],
@@ -220,10 +220,10 @@ def ventoux() -> dict:
 def s2p() -> dict:
     d = SHARED / "s2p_pair" / "input_pair"
     imgs = [d / "img_01.tif", d / "img_02.tif"]
-    params = OrientParams(tracks=TrackParams(tile=512))
+    spec = OrientSpec(tile=512)
     t0 = time.perf_counter()
-    o = orient_images(imgs, params=params)
-    write_orientation(o, WORK / "s2p" / "out", params)
+    o = orient_images(imgs, spec=spec)
+    write_orientation(o, WORK / "s2p" / "out", spec)
     return {"tie_relative_rms_px": o.report["tie_relative_rms_px"], "n_tracks": o.report["n_tracks"],
             "terms": [dict(x) for x in o.terms], "models": [m.name for m in o.models],
             "rejected": o.report["n_rejected"], "rejected_p2l": o.report["tracks"]["rejected_p2l"],

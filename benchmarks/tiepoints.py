@@ -9,7 +9,7 @@ temporary folder; every view gets the biases of
 ``tests/orient/orient_cases.py`` (2-3 px shifts, 1e-4 scale/shear) in its RPC tags, as the
 orientation stage sees real images. ``tie_point_tracks`` (tiles of 512 px, one coarse guide per
 scene shared by both extractors, synchronous scheduler) runs once per extractor
-(``TrackParams.extractor``: ``features`` = Shi-Tomasi + NCC segment search, ``structural`` =
+(``OrientSpec.extractor``: ``features`` = Shi-Tomasi + NCC segment search, ``structural`` =
 Wallis + Förstner + NCC along the RPC curve + probability relaxation), each with its defaults.
 
 Truth: the reference point's line of sight (true RPC of view 0) is intersected with the truth DSM
@@ -153,7 +153,8 @@ def run_scene(views: int, seed: int, root: Path) -> tuple[dict, dict]:
 
     from tiledsm.io.cameras import find_camera
     from simulate import biased_copies
-    from tiledsm.orient.tracks import TrackParams, coarse_guide, tie_point_tracks
+    from tiledsm.orient.spec import OrientSpec
+    from tiledsm.orient.tracks import coarse_guide, tie_point_tracks
     from tiledsm.synth import make_scene
 
     info = make_scene(root / "scene", size=1024, views=views, seed=seed, chunk=512, workers=1)
@@ -162,12 +163,12 @@ def run_scene(views: int, seed: int, root: Path) -> tuple[dict, dict]:
     biased = biased_copies(info.views, true, BIASES[:views], root / "biased", h)
     rpcs = [find_camera(p)[0] for p in biased]
     t0 = time.perf_counter()
-    guide = coarse_guide(biased, rpcs, TrackParams())
+    guide = coarse_guide(biased, rpcs)
     out = {"seed": seed, "guide_s": time.perf_counter() - t0, "h_range": list(guide.h_range)}
     raw = {}
     for ex in EXTRACTORS:
         t0 = time.perf_counter()
-        tracks, _ = tie_point_tracks(biased, rpcs, TrackParams(extractor=ex), guide=guide, scheduler="synchronous")
+        tracks, _ = tie_point_tracks(biased, rpcs, OrientSpec(extractor=ex), guide=guide, scheduler="synchronous")
         dt = time.perf_counter() - t0
         truth, clear = true_positions(tracks.pos[0], true, info.out_dir)
         raw[ex] = errors(tracks.pos, truth, clear)
@@ -197,7 +198,7 @@ def run_views(views: int, tmp: Path) -> dict:
 
 def run_real(name: str) -> dict:
     from tiledsm.io.cameras import find_camera
-    from tiledsm.orient import OrientParams, TrackParams, orient_images
+    from tiledsm.orient import OrientSpec, orient_images
 
     if name == "s2p":
         d = SHARED / "s2p_pair" / "input_pair"
@@ -210,7 +211,7 @@ def run_real(name: str) -> dict:
     out = {}
     for ex in EXTRACTORS:
         t0 = time.perf_counter()
-        o = orient_images(imgs, params=OrientParams(tracks=TrackParams(tile=tile, extractor=ex)), rpcs=rpcs,
+        o = orient_images(imgs, spec=OrientSpec(tile=tile, extractor=ex), rpcs=rpcs,
                           scheduler="synchronous")
         out[ex] = {"tracks": o.report["n_tracks"], "rejected_p2l": o.report["tracks"]["rejected_p2l"],
                    "tie_relative_rms_px": o.report["tie_relative_rms_px"], "seconds": time.perf_counter() - t0}
@@ -223,7 +224,7 @@ def run_orientation(views: int, root: Path) -> dict:
     from orient_cases import BIASES, relative_error
 
     from tiledsm.io.cameras import find_camera
-    from tiledsm.orient import OrientParams, TrackParams, orient_images
+    from tiledsm.orient import OrientSpec, orient_images
     from simulate import biased_copies, corner_points, ground_points, write_points_csv
     from tiledsm.synth import make_scene
 
@@ -239,10 +240,10 @@ def run_orientation(views: int, root: Path) -> dict:
     lon, lat, hh = ground_points(true[0], shape, (300, 400), 300, seed=3)
     out = {}
     for ex in EXTRACTORS:
-        params = OrientParams(tracks=TrackParams(tile=256, extractor=ex))
+        spec = OrientSpec(tile=256, extractor=ex)
         rec = {}
         for case, gcps in (("gcp4", root / "gcps.csv"), ("ties", None)):
-            o = orient_images(biased, gcps, root / "checks.csv", params=params, scheduler="synchronous")
+            o = orient_images(biased, gcps, root / "checks.csv", spec=spec, scheduler="synchronous")
             rec[case] = {
                 "n_tracks": o.report["n_tracks"],
                 "vs_true_rpc_px": [float(np.sqrt(np.mean(np.sum((np.stack(a.project(lon, lat, hh), -1)

@@ -9,7 +9,8 @@ import pytest
 from orient_cases import BIASES, H_RANGE, SIZE, relative_error
 
 from tiledsm.geometry.fit import with_affine
-from tiledsm.orient.adjust import AdjustParams, adjust_block, intersect
+from tiledsm.orient.adjust import adjust_block, intersect
+from tiledsm.orient.spec import AdjustParams
 from tiledsm.orient.bias import get_model
 from simulate import corner_points, ground_points, project_all, synthetic_block
 

@@ -149,8 +149,9 @@ def test_interrupted_rerun_leaves_no_report_of_the_earlier_run(scene2, points, o
         return copy(*a, **kw)
 
     monkeypatch.setattr(export, "copy_with_rpc", dies_at_the_second_image)
+    # other options than the finished run's: --overwrite replaces it
     rc = main(["orient", *map(str, biased), "--gcps", str(points[0]), "--out", str(out), "--no-tie-points",
-               "--model", "shift"])
+               "--model", "shift", "--overwrite"])
     assert rc == 130 and calls["n"] == 2
     # no report, and no RPC of the earlier run left to be taken for this one's: only the first image's new ones
     left = sorted(p.name for p in out.iterdir())
@@ -168,8 +169,39 @@ def test_extractor_is_chosen_on_the_command_line(scene2, points, oriented, tmp_p
     assert rc == 0
     doc = json.loads((out / "orient.json").read_text())
     structural = oriented[1]
-    assert doc["params"]["tracks"]["extractor"] == "features"
-    assert structural["params"]["tracks"]["extractor"] == "structural"
+    assert doc["params"]["extractor"] == "features"
+    assert structural["params"]["extractor"] == "structural"
     print("tracks features / structural", doc["n_tracks"], structural["n_tracks"])
     assert doc["n_tracks"] != structural["n_tracks"]
     assert doc["check_rms_px"]["after"] < 0.1 and doc["tie_relative_rms_px"]["after"] < 0.2
+
+
+def test_a_recipe_sets_the_advanced_parameters(scene2, points, oriented, tmp_path, capsys):
+    """``orient.tracks`` and ``orient.adjust`` (recipe only) reach the
+    matching and the adjustment through ``tiledsm run``: at most 5 interest
+    points per 256-px tile of the reference gives at most 4 x 5 tracks; a
+    rejection threshold of half the median residual rejects measurements
+    (none are by default) and needs a second round. A bad nested value is
+    refused at its field (exit 2, one line, nothing written)."""
+    import yaml
+
+    info, true, biased, h, root = scene2
+    recipe = {"pipeline": "orient", "images": [str(p) for p in biased],
+              "orient": {"gcps": str(points[0]), "tile": 256,
+                         "tracks": {"structural": {"points_per_tile": 5}}, "adjust": {"reject_k": 0.5, "min_reject_px": 0.0, "max_rounds": 2}}}
+    (tmp_path / "few.yaml").write_text(yaml.safe_dump(recipe))
+    assert main(["run", str(tmp_path / "few.yaml"), "--out", str(tmp_path / "few"), "--workers", "1"]) == 0
+    doc = json.loads((tmp_path / "few" / "orient.json").read_text())
+    print("tracks", doc["n_tracks"], oriented[1]["n_tracks"], "rejected", doc["n_rejected"], oriented[1]["n_rejected"])
+    assert 0 < doc["n_tracks"] <= 20 < oriented[1]["n_tracks"]
+    assert doc["n_rejected"] > 0 == oriented[1]["n_rejected"] and oriented[1]["adjustment"]["rounds"] == 1
+    assert doc["adjustment"]["rounds"] == 2
+    assert doc["params"]["tracks"]["structural"]["points_per_tile"] == 5 and doc["params"]["adjust"]["reject_k"] == 0.5
+
+    recipe["orient"]["tracks"]["structural"]["template"] = 14
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(recipe))
+    capsys.readouterr()
+    assert main(["run", str(tmp_path / "bad.yaml"), "--out", str(tmp_path / "bad")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "orient.tracks.structural.template" in err[0] and "odd integer >= 3, got 14" in err[0], err
+    assert not (tmp_path / "bad").exists()

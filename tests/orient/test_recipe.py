@@ -1,5 +1,5 @@
-"""The recipe section ``orient:`` (:mod:`tiledsm.orient.spec`): validation,
-:func:`orient_for_recipe` on a rendered pair with injected biases and a
+"""The recipe section ``orient:`` (:mod:`tiledsm.orient.spec`) and its step
+(:mod:`tiledsm.orient.step`): validation, :func:`orient_for_recipe` on a rendered pair with injected biases and a
 coarse reference DEM (oracle: the scene's truth DSM and true cameras),
 reuse of its products, the stable-ground exclusion, and the deformation
 recipe's joint pre/post orientation."""
@@ -18,7 +18,8 @@ from pyproj import Transformer
 from tiledsm.io.cameras import find_camera
 from tiledsm.orient.adjust import intersect
 from simulate import project_all
-from tiledsm.orient.spec import OrientSpec, orient_for_recipe, polygon_exclusion
+from tiledsm.orient.spec import OrientSpec
+from tiledsm.orient.step import orient_for_recipe, polygon_exclusion
 
 
 def test_spec_validation():
@@ -26,9 +27,25 @@ def test_spec_validation():
     assert OrientSpec(dem="a.tif", geoid="g.gtx", model="shift").model == "shift"
     assert OrientSpec().extractor == "structural" and OrientSpec(extractor="features").extractor == "features"
     for bad, word in (({"geoid": "g.gtx"}, "dem"), ({"model": "poly"}, "model"), ({"gcp": "x.csv"}, "gcp"),
-                      ({"extractor": "sift"}, "extractor")):
+                      ({"extractor": "sift"}, "extractor"), ({"datum": "median"}, "datum"),
+                      ({"tie_sigma_px": 0}, "tie_sigma_px"), ({"adjust": {"loss": "l2"}}, "adjust.loss"),
+                      ({"tracks": {"structural": {"template": 14}}}, "tracks.structural.template"),
+                      ({"tracks": {"tile": 256}}, "tracks.tile")):
         with pytest.raises(ValidationError, match=word):
             OrientSpec(**bad)
+    # the advanced parameters: nested, recipe only, read by the functions as they are
+    spec = OrientSpec.model_validate({"tile": 256, "adjust": {"dem_sigma_m": 5.0},
+                                      "tracks": {"p2l": {"k": 3.0}, "structural": {"min_ncc": 0.5}}})
+    assert (spec.tile, spec.adjust.dem_sigma_m, spec.tracks.p2l.k, spec.tracks.structural.min_ncc) == (256, 5.0, 3.0, 0.5)
+    assert spec.adjust.max_rounds == 6 and spec.tracks.structural.template == 15  # the others at their defaults
+
+
+def test_datum_names_are_the_rules():
+    from typing import get_args
+
+    from tiledsm.orient.datum import DATUMS
+
+    assert set(get_args(OrientSpec.model_fields["datum"].annotation)) == set(DATUMS)
 
 
 def test_deformation_spec_needs_joint_for_points():

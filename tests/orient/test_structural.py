@@ -5,17 +5,18 @@ cases, and the extractor on a rendered scene against the truth."""
 from __future__ import annotations
 
 import sys
+import typing
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tiledsm.errors import InvalidOptionError
+from pydantic import ValidationError
+
 from tiledsm.io.cameras import find_camera
-from tiledsm.orient.structural import (
-    StructuralParams, curve_candidates, forstner, match_tile_structural, relax, wallis,
-)
-from tiledsm.orient.tracks import EXTRACTORS, TrackParams, tie_point_tracks
+from tiledsm.orient.spec import OrientSpec, StructuralParams
+from tiledsm.orient.structural import curve_candidates, forstner, match_tile_structural, relax, wallis
+from tiledsm.orient.tracks import EXTRACTORS, tie_point_tracks
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from benchmarks.tiepoints import score, true_positions  # noqa: E402
@@ -133,10 +134,12 @@ def test_relaxation_drops_a_point_its_neighbours_contradict():
 
 # ------------------------------------------------------------------ registry
 def test_extractor_is_chosen_by_name():
+    # the spec names the registry's keys, and nothing else
     assert set(EXTRACTORS) == {"features", "structural"}
-    with pytest.raises(InvalidOptionError, match="extractor"):
-        TrackParams(extractor="sift")
-    with pytest.raises(InvalidOptionError, match="template"):
+    assert set(typing.get_args(OrientSpec.model_fields["extractor"].annotation)) == set(EXTRACTORS)
+    with pytest.raises(ValidationError, match="extractor"):
+        OrientSpec(extractor="sift")
+    with pytest.raises(ValidationError, match="template"):
         StructuralParams(template=14)
 
 
@@ -178,8 +181,8 @@ def test_extractors_against_truth(scene2, extractor):
     template follows the strongest edge; every clear match is within 1 px."""
     info, true, biased, h, root = scene2
     rpcs = [find_camera(p)[0] for p in biased]
-    params = TrackParams(tile=256, extractor=extractor)
-    tracks, guide = tie_point_tracks(biased, rpcs, params, scheduler="synchronous")
+    spec = OrientSpec(tile=256, extractor=extractor)
+    tracks, guide = tie_point_tracks(biased, rpcs, spec, scheduler="synchronous")
     truth, clear = true_positions(tracks.pos[0], true, info.out_dir)
     s = score(tracks.pos, truth, clear)
     print(extractor, tracks.n, s)
@@ -189,6 +192,6 @@ def test_extractors_against_truth(scene2, extractor):
     assert s["correct_clear_1px"] > 0.98 and s["clear_matches"] > 0.9 * nc
     if extractor == "structural":
         # one tile by hand, with the StructuralParams themselves: the contract of match_tile
-        out = match_tile_structural(biased, rpcs, guide, (0, 256, 0, 256), params.structural)
+        out = match_tile_structural(biased, rpcs, guide, (0, 256, 0, 256), spec.tracks.structural)
         assert out["pos"].shape[0] == 2 and np.all(out["ncc"][0] == 1.0)
         assert np.all((out["pos"][0] >= 0) & (out["pos"][0] < 256))

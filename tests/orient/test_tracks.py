@@ -9,13 +9,14 @@ from pyproj import Transformer
 
 from tiledsm.io.cameras import find_camera
 from tiledsm.orient.adjust import intersect
-from tiledsm.orient.tracks import TrackParams, coarse_guide, read_window, tie_point_tracks
+from tiledsm.orient.spec import OrientSpec
+from tiledsm.orient.tracks import coarse_guide, read_window, tie_point_tracks
 
 
 def test_tracks_are_correct_and_tiled(scene2):
     info, true, biased, h, root = scene2
     rpcs = [find_camera(p)[0] for p in biased]
-    tracks, guide = tie_point_tracks(biased, rpcs, TrackParams(tile=256), scheduler="synchronous")
+    tracks, guide = tie_point_tracks(biased, rpcs, OrientSpec(tile=256), scheduler="synchronous")
     assert tracks.n > 300
     # every tile contributed (4 tiles of 256 px)
     r0 = tracks.pos[0]
@@ -45,7 +46,7 @@ def test_guide_puts_the_true_match_on_the_searched_curve(scene2):
     camera, where the structural extractor then found nothing)."""
     info, true, biased, h, root = scene2
     rpcs = [find_camera(p)[0] for p in biased]
-    guide = coarse_guide(biased, rpcs, TrackParams(tile=256))
+    guide = coarse_guide(biased, rpcs)
     rng = np.random.default_rng(0)
     p0 = rng.uniform(64, 448, (200, 2))
     hs_true = rng.uniform(*guide.h_range, 200)

@@ -6,8 +6,10 @@ Pure kernels (:mod:`~tiledsm.orient.bias`, :mod:`~tiledsm.orient.adjust`,
 tiles the matching with dask; :mod:`~tiledsm.orient.stage` reads the inputs
 and writes the corrected RPCs. The stage (``pipeline: orient``, ``tiledsm
 orient``): its recipe (:mod:`~tiledsm.orient.recipe`; parameters
-:mod:`~tiledsm.orient.spec`), plan
-(:mod:`~tiledsm.orient.plan`) and runner (:mod:`~tiledsm.orient.run`).
+:mod:`~tiledsm.orient.spec`, the functions' parameters too), plan
+(:mod:`~tiledsm.orient.plan`) and runner (:mod:`~tiledsm.orient.run`); the
+``orient:`` of a ``dsm`` or ``deformation`` recipe runs
+:mod:`~tiledsm.orient.step`.
 
 The package's names are loaded from their modules on first use (PEP 562):
 a recipe model needs :class:`~tiledsm.orient.spec.OrientSpec`, not the
@@ -21,15 +23,16 @@ import importlib
 
 #: the module of each name the package exports
 _HOME = {name: module for module, names in (
-    ("adjust", ("AdjustParams", "AdjustResult", "Block", "adjust_block", "intersect")),
+    ("adjust", ("AdjustResult", "Block", "adjust_block", "intersect")),
     ("bias", ("MODELS", "BiasModel", "choose_model", "get_model")),
     ("dem", ("ReferenceDEM",)),
-    ("p2l", ("P2LParams", "P2LResult", "p2l_distances", "p2l_filter", "ransac_filter")),
+    ("p2l", ("P2LResult", "p2l_distances", "p2l_filter", "ransac_filter")),
     ("points", ("ControlPoints", "read_points")),
     ("recipe", ("OrientRecipe",)),
-    ("spec", ("OrientSpec", "orient_for_recipe", "polygon_exclusion")),
-    ("stage", ("Orientation", "OrientParams", "orient_images", "write_orientation")),
-    ("tracks", ("Guide", "TrackParams", "Tracks", "coarse_guide", "tie_point_tracks")),
+    ("spec", ("OrientSpec", "TrackParams", "StructuralParams", "P2LParams", "AdjustParams")),
+    ("step", ("orient_for_recipe", "polygon_exclusion")),
+    ("stage", ("Orientation", "orient_images", "write_orientation")),
+    ("tracks", ("Guide", "Tracks", "coarse_guide", "tie_point_tracks")),
 ) for name in names}
 
 __all__ = list(_HOME)

@@ -56,8 +56,9 @@ from scipy.optimize import least_squares
 from tiledsm.errors import MatchingError
 from tiledsm.geometry.rpc import RPC
 from tiledsm.orient.bias import BiasModel
+from tiledsm.orient.spec import AdjustParams
 
-__all__ = ["Block", "AdjustParams", "AdjustResult", "adjust_block", "intersect", "METRES_PER_DEGREE"]
+__all__ = ["Block", "AdjustResult", "adjust_block", "intersect", "METRES_PER_DEGREE"]
 
 #: metres per degree of latitude (spherical, WGS84 semi-major axis): the
 #: local parametrisation of ground offsets (any consistent value works)
@@ -109,58 +110,6 @@ class Block:
     @property
     def n_points(self) -> int:
         return int(self.ground0.shape[0])
-
-
-@dataclass(frozen=True)
-class AdjustParams:
-    """Weights and robustness of :func:`adjust_block`.
-
-    Attributes
-    ----------
-    dem_sigma_m : float
-        Standard deviation of a tie-point height against the reference DEM
-        on flat ground, metres (SRTM: a few metres).
-    dem_robust_sigma : bool
-        Re-estimate the residuals' scatter ``s0`` after every solve
-        (1.4826 x MAD of the kept DEM residuals, at least
-        :attr:`dem_min_sigma_m`) and reject with it; False: with
-        ``dem_sigma_m``.
-    dem_min_sigma_m : float
-        Floor of the re-estimated ``s0``, metres.
-    dem_offset_sigma_m : float
-        Prior standard deviation of the DEM's overall vertical offset,
-        metres (its absolute accuracy: SRTM about 5 m).
-    prior_shift_px, prior_linear : float
-        Weak priors (standard deviations around 0) of ``A0``/``B0``
-        (pixels) and of the linear terms: they fix the datum of a block
-        with nothing absolute in it.
-    loss : str
-        :func:`scipy.optimize.least_squares` loss.
-    f_scale : float
-        Residual (in standard deviations) where the robust loss bends.
-    reject_k, min_reject_px : float
-        An image measurement is rejected when its residual exceeds
-        ``max(min_reject_px, reject_k * median residual)`` pixels.
-    dem_reject_k : float
-        A DEM height observation is dropped when its residual, less the
-        median residual, exceeds ``dem_reject_k * s0`` (buildings, trees,
-        DEM voids); one dropped earlier and now within is taken back.
-    max_rounds : int
-        Solve / reject rounds.
-    """
-
-    dem_sigma_m: float = 3.0
-    dem_robust_sigma: bool = True
-    dem_min_sigma_m: float = 0.1
-    dem_offset_sigma_m: float = 5.0
-    prior_shift_px: float = 100.0
-    prior_linear: float = 1e-3
-    loss: str = "soft_l1"
-    f_scale: float = 3.0
-    reject_k: float = 5.0
-    min_reject_px: float = 1.0
-    dem_reject_k: float = 2.5
-    max_rounds: int = 6
 
 
 @dataclass(frozen=True)
@@ -444,6 +393,8 @@ def adjust_block(
         unknown): the reference DEM constraining the heights of the points
         with ``block.use_dem``.
     params : AdjustParams
+        Weights and robustness (:class:`~tiledsm.orient.spec.AdjustParams`:
+        ``OrientSpec.adjust``, ``orient.adjust`` in a recipe).
 
     Returns
     -------

@@ -11,7 +11,8 @@ cameras, which is smooth over the image; a mismatch generally does not. The
 signed distance of ``p2`` from the line is therefore fitted by a robust
 affine trend in ``(row, col)`` of ``p1`` (the relative bias), and matches
 whose residual from the trend exceeds ``k`` robust standard deviations
-(1.4826 x MAD, at least ``floor_px``) are rejected.
+(1.4826 x MAD, at least ``floor_px``) are rejected (parameters
+:class:`~tiledsm.orient.spec.P2LParams`, ``orient.tracks.p2l`` in a recipe).
 
 Conventions: pixel coordinates GDAL (top-left image corner at (0, 0)),
 heights metres above the WGS84 ellipsoid.
@@ -24,31 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from tiledsm.geometry.rpc import RPC
+from tiledsm.orient.spec import P2LParams
 
-__all__ = ["P2LParams", "P2LResult", "p2l_distances", "p2l_filter", "ransac_filter"]
-
-
-@dataclass(frozen=True)
-class P2LParams:
-    """Parameters of :func:`p2l_filter`.
-
-    Attributes
-    ----------
-    n_heights : int
-        Heights sampled across the range to trace each epipolar curve.
-    k : float
-        Rejection threshold in robust standard deviations of the residual.
-    floor_px : float
-        Smallest threshold, pixels (a set of near-perfect matches must not
-        reject matches at 0.3 px).
-    iterations : int
-        Robust trend fitting passes.
-    """
-
-    n_heights: int = 5
-    k: float = 3.5
-    floor_px: float = 0.7
-    iterations: int = 6
+__all__ = ["P2LResult", "p2l_distances", "p2l_filter", "ransac_filter"]
 
 
 @dataclass(frozen=True)

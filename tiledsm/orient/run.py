@@ -50,16 +50,16 @@ def run_orient(recipe: OrientRecipe, out: Path, cluster: ClusterConfig | None = 
     # the exports are rewritten, even from a finished store: nothing may describe them meanwhile
     withdraw(out, ["metrics.json", "recipe.resolved.yaml"])
     t0 = time.perf_counter()
-    prepared, params = plan.product, recipe.orient.params()
+    prepared, spec = plan.product, recipe.orient
     # the tie-point tiles are the only parallel part; GCP-only runs start no cluster
-    with compute_context(cluster) if params.tie_points and len(prepared.images) > 1 else nullcontext():
-        o = orient_images(prepared.images, prepared.gcps, prepared.check_points, prepared.dem, params,
+    with compute_context(cluster) if spec.tie_points and len(prepared.images) > 1 else nullcontext():
+        o = orient_images(prepared.images, prepared.gcps, prepared.check_points, prepared.dem, spec,
                           rpcs=prepared.rpcs)
     datum_warning = [o.report["datum"]["warning"]] if "warning" in o.report["datum"] else []
     warnings = list(plan.warnings) + datum_warning
     for w in datum_warning:
         log.warning(w)
-    doc = write_orientation(o, out, params, extra={"command": "tiledsm orient", "warnings": warnings, "inputs": {
+    doc = write_orientation(o, out, spec, extra={"command": "tiledsm orient", "warnings": warnings, "inputs": {
         "images": list(prepared.images), "gcps": prepared.gcps, "check_points": prepared.check_points,
         "dem": str(recipe.orient.dem) if recipe.orient.dem else None, "geoid": recipe.orient.geoid}})
     metrics = {"pipeline": "orient", **{k: doc[k] for k in SUMMARY if k in doc}, "warnings": warnings,

@@ -18,7 +18,7 @@ from __future__ import annotations
 import json
 import time
 import warnings
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
 
@@ -27,53 +27,13 @@ import numpy as np
 from tiledsm.geometry.fit import with_affine
 from tiledsm.errors import InputFileError, InvalidOptionError, MatchingError
 from tiledsm.geometry.rpc import RPC
-from tiledsm.orient.adjust import AdjustParams, AdjustResult, Block, adjust_block, intersect
+from tiledsm.orient.adjust import AdjustResult, Block, adjust_block, intersect
 from tiledsm.orient.bias import TERMS, BiasModel, choose_model, get_model
 from tiledsm.orient.points import ControlPoints, point_residuals, read_points
-from tiledsm.orient.tracks import Tracks, TrackParams, tie_point_tracks
+from tiledsm.orient.spec import OrientSpec
+from tiledsm.orient.tracks import Tracks, tie_point_tracks
 
-__all__ = ["OrientParams", "Orientation", "orient_images", "write_orientation", "residual_rms"]
-
-
-@dataclass(frozen=True)
-class OrientParams:
-    """Parameters of :func:`orient_images`.
-
-    Attributes
-    ----------
-    model : str or None
-        Bias model of every image (``"shift"``, ``"affine"``); None chooses
-        per image by point count (:func:`~tiledsm.orient.bias.choose_model`).
-    tie_points : bool
-        Extract tie points (needs >= 2 images).
-    tie_sigma_px, gcp_sigma_px : float
-        Standard deviations of tie-point and GCP image measurements, pixels.
-    gcp_sigma_m : float
-        Standard deviation of GCP ground coordinates, metres.
-    refit_max_error_px : float
-        Tolerance of the corrected RPC's refit (affine models), pixels.
-    tracks, adjust : TrackParams, AdjustParams
-    datum : str
-        How a block with nothing absolute in it (tie points only: no GCP,
-        no DEM) is held (:data:`tiledsm.orient.datum.DATUMS`): "consensus"
-        (default), "mean" or "priors".
-    """
-
-    def __post_init__(self):
-        from tiledsm.orient.datum import DATUMS
-
-        if self.datum not in DATUMS:
-            raise InvalidOptionError(f"datum: expected one of {sorted(DATUMS)}, got {self.datum!r}")
-
-    model: str | None = None
-    tie_points: bool = True
-    tie_sigma_px: float = 0.3
-    gcp_sigma_px: float = 0.3
-    gcp_sigma_m: float = 0.1
-    refit_max_error_px: float = 0.01
-    tracks: TrackParams = TrackParams()
-    adjust: AdjustParams = AdjustParams()
-    datum: str = "consensus"
+__all__ = ["Orientation", "orient_images", "write_orientation", "residual_rms"]
 
 
 @dataclass(frozen=True)
@@ -123,7 +83,7 @@ def orient_images(
     gcps: str | Path | None = None,
     check_points: str | Path | None = None,
     dem=None,
-    params: OrientParams = OrientParams(),
+    spec: OrientSpec = OrientSpec(),
     rpcs: Sequence[RPC] | None = None,
     scheduler: str | None = None,
     exclude=None,
@@ -142,7 +102,12 @@ def orient_images(
         ``dem(lon, lat) -> h`` ellipsoidal (e.g.
         :class:`~tiledsm.orient.dem.ReferenceDEM`) constraining tie-point
         heights.
-    params : OrientParams
+    spec : OrientSpec
+        The parameters: the bias model, tie points (``tile``,
+        ``extractor``, ``tracks``), the measurements' standard deviations,
+        the adjustment (``adjust``), the datum. Its point-file and DEM
+        fields are not read: the files are the arguments above (the plan
+        resolves and opens them).
     rpcs : sequence of RPC, optional
         Cameras to use instead of those found with the images.
     scheduler : str, optional
@@ -191,14 +156,14 @@ def orient_images(
 
     tracks = None
     guide = None
-    if params.tie_points and n_img >= 2:
+    if spec.tie_points and n_img >= 2:
         t1 = time.perf_counter()
-        tracks, guide = tie_point_tracks(paths, rpcs, params.tracks, scheduler=scheduler)
+        tracks, guide = tie_point_tracks(paths, rpcs, spec, scheduler=scheduler)
         timings["tie_points"] = time.perf_counter() - t1
     n_tie = np.isfinite(tracks.pos[..., 0]).sum(axis=1) if tracks is not None else np.zeros(n_img, int)
     if len(g) == 0 and (tracks is None or tracks.n == 0):
         raise MatchingError("orient: nothing to adjust (no GCPs and no tie points)")
-    models = _choose_models(n_img, names, g, bool(gcps), n_tie, params.model)
+    models = _choose_models(n_img, names, g, bool(gcps), n_tie, spec.model)
 
     # ------------------------------------------------------------ the block
     t1 = time.perf_counter()
@@ -220,7 +185,7 @@ def orient_images(
         pt_l.append(tp)
         row_l.append(tr)
         col_l.append(tc)
-        sig_l.append(np.full(ti.size, params.tie_sigma_px))
+        sig_l.append(np.full(ti.size, spec.tie_sigma_px))
         ground0.append(gt)
         prior.append(np.full(tracks.n, np.inf))
         use_dem.append(np.full(tracks.n, dem is not None))
@@ -234,9 +199,9 @@ def orient_images(
         pt_l.append(np.array([index[p] for p in g.ids.tolist()]))
         row_l.append(g.row)
         col_l.append(g.col)
-        sig_l.append(np.full(len(g), params.gcp_sigma_px))
+        sig_l.append(np.full(len(g), spec.gcp_sigma_px))
         ground0.append(np.array([[g.lon[first[p]], g.lat[first[p]], g.h[first[p]]] for p in gid]))
-        prior.append(np.full(len(gid), params.gcp_sigma_m))
+        prior.append(np.full(len(gid), spec.gcp_sigma_m))
         use_dem.append(np.zeros(len(gid), bool))
         ids.append(np.array(gid))
     block = Block(
@@ -255,7 +220,7 @@ def orient_images(
     slope_sigma = getattr(dem, "slope_sigma", None)  # ReferenceDEM: weight flat ground above relief
     if slope_sigma is not None and block.use_dem.any():
         block = replace(block, dem_slope_sigma_m=slope_sigma(block.ground0[:, 0], block.ground0[:, 1]))
-    result = adjust_block(rpcs, models, block, dem, params.adjust)
+    result = adjust_block(rpcs, models, block, dem, spec.adjust)
     timings["adjust"] = time.perf_counter() - t1
     on_gcp = np.isfinite(block.prior_sigma_m[block.pt])
     if on_gcp.any() and result.rejected[on_gcp].all():
@@ -267,7 +232,7 @@ def orient_images(
 
     # ------------------------------------------------------------ corrected RPCs
     t1 = time.perf_counter()
-    datum, shift = _datum(rpcs, models, result, block, len(g) == 0 and dem is None, params.datum)
+    datum, shift = _datum(rpcs, models, result, block, len(g) == 0 and dem is None, spec.datum)
     after, terms = [], []
     for i, (rpc, m) in enumerate(zip(rpcs, models)):
         a, b = m.full(result.x[i])
@@ -275,7 +240,7 @@ def orient_images(
         terms.append(dict(zip(TERMS, [float(v) for v in (*a, *b)])))
         h_range = (rpc.height_off - abs(rpc.height_scale), rpc.height_off + abs(rpc.height_scale))
         after.append(with_affine(rpc, a, b, image_shape=shapes[i], h_range=h_range,
-                                     max_error=params.refit_max_error_px).replace(
+                                     max_error=spec.refit_max_error_px).replace(
             source=f"{paths[i]} bias-corrected ({m.name})"))
     timings["fold"] = time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t0
@@ -384,7 +349,7 @@ def _report(paths, before, after, models, terms, g, chk, tracks, guide, block, r
 
 
 # ------------------------------------------------------------------ writing
-def write_orientation(o: Orientation, out_dir: str | Path, params: OrientParams | None = None,
+def write_orientation(o: Orientation, out_dir: str | Path, spec: OrientSpec | None = None,
                       extra: dict | None = None) -> dict:
     """Write the products of an orientation into ``out_dir``:
 
@@ -394,7 +359,8 @@ def write_orientation(o: Orientation, out_dir: str | Path, params: OrientParams 
       model). Pixel coordinates are the input file's (a crop's RPC is the
       crop's: the copy has no crop geotransform);
     - ``orient.json``: terms per image, residual RMS at GCPs, check points
-      and tie points before/after, rejected measurements by id;
+      and tie points before/after, rejected measurements by id, and
+      (``params``) the ``spec`` the orientation ran with;
     - ``residuals.csv``: every GCP/check-point residual before/after;
     - ``residuals.png``: residual vectors over each image.
 
@@ -431,8 +397,8 @@ def write_orientation(o: Orientation, out_dir: str | Path, params: OrientParams 
     doc = dict(o.report)
     for d, f in zip(doc["images"], files):
         d.update(f)
-    if params is not None:
-        doc["params"] = json.loads(json.dumps(asdict(params), default=str))
+    if spec is not None:
+        doc["params"] = spec.model_dump(mode="json")
     doc.update(extra or {})
     # residual table
     rows = ["id,image,kind,row,col,drow_before,dcol_before,drow_after,dcol_after"]

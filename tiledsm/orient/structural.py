@@ -3,7 +3,9 @@
 
 The second tie-point extractor of :mod:`tiledsm.orient.tracks` (the point
 matching of the deformation method), selected by
-``TrackParams(extractor="structural")``. In one reference tile:
+``OrientSpec(extractor="structural")`` (the default), its parameters
+:class:`~tiledsm.orient.spec.StructuralParams` (``orient.tracks.structural``
+in a recipe). In one reference tile:
 
 1. :func:`wallis` filters both images with the same parameters (local
    contrast and brightness forced towards a target mean and standard
@@ -43,141 +45,16 @@ the curve, from its low-height end.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from tiledsm.errors import InvalidOptionError
 from tiledsm.geometry.rpc import RPC
 from tiledsm.io.scenes import read_window
+from tiledsm.orient.spec import StructuralParams
 
-__all__ = ["StructuralParams", "wallis", "forstner", "curve_candidates", "relax", "match_tile_structural"]
-
-
-@dataclass(frozen=True)
-class StructuralParams:
-    """Parameters of :func:`match_tile_structural`.
-
-    Attributes
-    ----------
-    wallis_window : int
-        Side of the Wallis filter's local statistics window, pixels.
-    target_mean, target_std : float
-        Wallis target mean and standard deviation, grey levels.
-    contrast : float
-        Wallis contrast constant ``c`` in [0, 1] (1: the local standard
-        deviation is forced to ``target_std``).
-    brightness : float
-        Wallis brightness constant ``b`` in [0, 1] (1: the local mean is
-        forced to ``target_mean``).
-    forstner_window : int
-        Side of the structure tensor's summation window, pixels (odd).
-    min_roundness : float
-        Smallest Förstner roundness ``q`` in (0, 1] (0 on a straight edge,
-        1 on an isotropic corner).
-    weight_factor : float
-        A point's weight ``w`` must exceed ``weight_factor`` x the mean ``w``
-        of the tile.
-    nms : int
-        Side of the non-maximum suppression neighbourhood, pixels.
-    max_offset_px : float
-        Largest distance (per axis) between a point's least-squares
-        position and its ``w`` maximum, pixels. At X-junctions and blobs
-        they coincide; at an L-shaped corner (a roof corner) the maximum
-        lies 1-2 px inside the brighter side and the position on the
-        corner, a height discontinuity where area matching follows the
-        strongest edge: 1 px drops those (two 512 px tiles of a synthetic
-        scene: 82 % of the matches within 1 px of the truth instead of
-        73 %); ``forstner_window / 2`` keeps them.
-    points_per_tile : int
-        Strongest interest points kept per reference tile, at most.
-    template : int
-        NCC template side, pixels (odd).
-    curve_step_px : float
-        Largest spacing of the height samples' projections in the other
-        image, pixels.
-    margin_px : float
-        Search across the curve, pixels: the NCC read along the curve is
-        the largest within this distance (the guide's shift leaves part of
-        the relative bias across the curve), and a candidate is the 2-D
-        peak there.
-    min_ncc : float
-        Smallest NCC of a candidate.
-    top_k : int
-        Candidates per point and image, at most.
-    peak_separation_px : float
-        Smallest distance between two candidates along the curve, pixels.
-    radius_px : float
-        Neighbourhood radius of the relaxation, reference pixels.
-    max_neighbours : int
-        Nearest neighbours used within the radius, at most.
-    compat_px : float
-        Parallax difference always compatible, pixels.
-    max_gradient : float
-        Parallax difference allowed per pixel of distance (disparity
-        gradient limit).
-    relax_a, relax_b : float
-        Update ``p(a) <- p(a) (A + B q(a))`` with ``q`` the mean support
-        (the "no match" label keeps its ``p``).
-    iterations : int
-        Relaxation passes, at most.
-    tol : float
-        Stop when no probability changes by more than this.
-    min_prob : float
-        Smallest final probability of the chosen candidate.
-    accept_ncc : float
-        Smallest NCC of a chosen candidate: the relaxation may raise a
-        candidate between ``min_ncc`` and this on its neighbours' support,
-        not keep it (1024 px synthetic scenes, 3 seeds: 0.6 keeps 2-3 % more
-        matches, 85-87 % of them within 1 px of the truth instead of
-        87-89 %).
-    max_window : int
-        Longest side of a per-tile search window read in another image;
-        wider windows are read point by point.
-    """
-
-    wallis_window: int = 31
-    target_mean: float = 127.0
-    target_std: float = 50.0
-    contrast: float = 0.8
-    brightness: float = 0.9
-    forstner_window: int = 5
-    min_roundness: float = 0.5
-    weight_factor: float = 1.0
-    nms: int = 9
-    max_offset_px: float = 1.0
-    points_per_tile: int = 150
-    template: int = 15
-    curve_step_px: float = 1.0
-    margin_px: float = 4.0
-    min_ncc: float = 0.6
-    top_k: int = 4
-    peak_separation_px: float = 3.0
-    radius_px: float = 64.0
-    max_neighbours: int = 10
-    compat_px: float = 1.5
-    max_gradient: float = 0.1
-    relax_a: float = 0.3
-    relax_b: float = 3.0
-    iterations: int = 10
-    tol: float = 1e-3
-    min_prob: float = 0.5
-    accept_ncc: float = 0.7
-    max_window: int = 2048
-
-    def __post_init__(self):
-        for name in ("template", "forstner_window"):
-            v = getattr(self, name)
-            if v < 3 or v % 2 == 0:
-                raise InvalidOptionError(f"StructuralParams.{name}: expected an odd integer >= 3, got {v}")
-        for name in ("contrast", "brightness"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise InvalidOptionError(f"StructuralParams.{name}: expected a value in [0, 1], "
-                                         f"got {getattr(self, name)}")
-        if self.curve_step_px <= 0 or self.top_k < 1:
-            raise InvalidOptionError("StructuralParams: curve_step_px must be > 0 and top_k >= 1")
+__all__ = ["wallis", "forstner", "curve_candidates", "relax", "match_tile_structural"]
 
 
 # ------------------------------------------------------------------ filters
@@ -475,7 +352,7 @@ def match_tile_structural(
     window : (int, int, int, int)
         Reference tile, array indices.
     params : StructuralParams or TrackParams
-        A :class:`~tiledsm.orient.tracks.TrackParams` gives its
+        A :class:`~tiledsm.orient.spec.TrackParams` gives its
         ``structural`` field.
 
     Returns

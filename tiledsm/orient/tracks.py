@@ -17,7 +17,7 @@ the window its points can fall in):
    between the two projections, shifted by the guide and widened by a
    margin, is where ``cv2.matchTemplate`` (zero-mean NCC) looks; the NCC
    peak is refined to a sub-pixel position by a parabola in each axis
-   (``TrackParams.extractor="features"``); or, the default, structural
+   (``OrientSpec.extractor="features"``); or, the default, structural
    matching (``"structural"``, :mod:`tiledsm.orient.structural`: Wallis,
    Förstner points, NCC along the RPC curve, probability relaxation; more
    matches, and more of them within 1 px of the truth, on synthetic
@@ -41,81 +41,21 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from tiledsm.errors import InvalidOptionError, MatchingError
+from tiledsm.errors import MatchingError
 from tiledsm.geometry.rpc import RPC
 from tiledsm.io.scenes import read_window
-from tiledsm.orient.p2l import P2LParams, p2l_filter
-from tiledsm.orient.structural import StructuralParams, match_tile_structural
+from tiledsm.orient.p2l import p2l_filter
+from tiledsm.orient.spec import OrientSpec, TrackParams
+from tiledsm.orient.structural import match_tile_structural
 
-__all__ = ["TrackParams", "Guide", "Tracks", "EXTRACTORS", "coarse_guide", "match_tile", "tie_point_tracks",
+__all__ = ["Guide", "Tracks", "EXTRACTORS", "coarse_guide", "match_tile", "tie_point_tracks",
            "read_window"]
 
-#: Tie-point extractors by ``TrackParams.extractor`` name: ``f(paths, rpcs,
-#: guide, window, params) -> {"pos", "ncc"}`` (see :func:`match_tile`).
+#: Tie-point extractors by ``OrientSpec.extractor`` name: ``f(paths, rpcs,
+#: guide, window, params: TrackParams) -> {"pos", "ncc"}`` (see
+#: :func:`match_tile`); the spec's ``Literal`` names the same keys.
 #: Filled below :func:`match_tile` (empty only while this module loads).
 EXTRACTORS: dict[str, Callable[..., dict]] = {}
-
-
-@dataclass(frozen=True)
-class TrackParams:
-    """Parameters of :func:`tie_point_tracks`.
-
-    Attributes
-    ----------
-    tile : int
-        Reference tile side, pixels (one task per tile).
-    features_per_tile : int
-        Corner features per tile, at most.
-    min_distance : int
-        Minimum distance between features, pixels.
-    quality : float
-        ``goodFeaturesToTrack`` quality level.
-    template : int
-        NCC template side, pixels (odd).
-    margin_px : float
-        Search margin around the predicted segment, pixels.
-    min_ncc : float
-        Smallest NCC peak accepted.
-    min_std : float
-        Smallest template standard deviation (grey levels): flat templates
-        are skipped.
-    coarse_size : int
-        Longest side of the overviews matched for the guide, pixels.
-    height_margin_m : float
-        Added on both sides of the guide's height range, metres.
-    max_window : int
-        Longest side of a per-tile search window read in another image;
-        wider windows (a huge height range) are read point by point.
-    p2l : P2LParams
-        Mismatch rejection.
-    extractor : str
-        Key of :data:`EXTRACTORS`: ``"structural"`` (the default,
-        :mod:`tiledsm.orient.structural`, parameters in ``structural``) or
-        ``"features"`` (corners, NCC along the predicted segment: the
-        parameters ``features_per_tile`` to ``min_std`` above).
-    structural : StructuralParams
-        Parameters of the structural extractor.
-    """
-
-    tile: int = 512
-    features_per_tile: int = 150
-    min_distance: int = 15
-    quality: float = 0.01
-    template: int = 15
-    margin_px: float = 4.0
-    min_ncc: float = 0.8
-    min_std: float = 2.0
-    coarse_size: int = 1000
-    height_margin_m: float = 15.0
-    max_window: int = 2048
-    p2l: P2LParams = P2LParams()
-    extractor: str = "structural"
-    structural: StructuralParams = StructuralParams()
-
-    def __post_init__(self):
-        if EXTRACTORS and self.extractor not in EXTRACTORS:
-            raise InvalidOptionError(f"TrackParams.extractor: expected one of {sorted(EXTRACTORS)}, "
-                                     f"got {self.extractor!r}")
 
 
 @dataclass(frozen=True)
@@ -363,19 +303,19 @@ EXTRACTORS.update(features=match_tile, structural=match_tile_structural)
 
 
 # ------------------------------------------------------------------ scene
-def _tile_task(paths, rpcs, guide, shape, params, block_info=None):
+def _tile_task(paths, rpcs, guide, shape, spec: OrientSpec, block_info=None):
     (bi, bj) = block_info[None]["chunk-location"]
-    t = params.tile
+    t = spec.tile
     win = (bi * t, min((bi + 1) * t, shape[0]), bj * t, min((bj + 1) * t, shape[1]))
     out = np.empty((1, 1), object)
-    out[0, 0] = EXTRACTORS[params.extractor](paths, rpcs, guide, win, params)
+    out[0, 0] = EXTRACTORS[spec.extractor](paths, rpcs, guide, win, spec.tracks)
     return out
 
 
 def tie_point_tracks(
     paths: Sequence[str | Path],
     rpcs: Sequence[RPC],
-    params: TrackParams = TrackParams(),
+    spec: OrientSpec = OrientSpec(),
     guide: Guide | None = None,
     scheduler: str | None = None,
 ) -> tuple[Tracks, Guide]:
@@ -387,7 +327,10 @@ def tie_point_tracks(
         Images (band 1 is used); the first is the reference.
     rpcs : sequence of RPC
         Their cameras (GDAL convention, as they are: biased is fine).
-    params : TrackParams
+    spec : OrientSpec
+        Its ``tile`` (reference tile side, pixels: one task per tile),
+        ``extractor`` (a key of :data:`EXTRACTORS`) and ``tracks`` (the
+        matching's parameters) are read.
     guide : Guide, optional
         Default: :func:`coarse_guide`.
     scheduler : str, optional
@@ -407,10 +350,10 @@ def tie_point_tracks(
         warnings.simplefilter("ignore")
         with rasterio.open(paths[0]) as ds:
             shape = (ds.height, ds.width)
-    guide = guide or coarse_guide(paths, rpcs, params)
-    t = params.tile
+    guide = guide or coarse_guide(paths, rpcs, spec.tracks)
+    t = spec.tile
     nb = (-(-shape[0] // t), -(-shape[1] // t))
-    graph = da.map_blocks(_tile_task, [str(p) for p in paths], list(rpcs), guide, shape, params,
+    graph = da.map_blocks(_tile_task, [str(p) for p in paths], list(rpcs), guide, shape, spec,
                           chunks=((1,) * nb[0], (1,) * nb[1]), dtype=object, meta=np.empty((0, 0), object))
     with dask.config.set(scheduler=scheduler) if scheduler else _nullcontext():
         parts = graph.compute()
@@ -420,7 +363,7 @@ def tie_point_tracks(
     for k in range(1, len(paths)):
         m = np.isfinite(pos[k, :, 0])
         if m.sum() >= 8:
-            r = p2l_filter(rpcs[0], rpcs[k], pos[0, m], pos[k, m], guide.h_range, params.p2l)
+            r = p2l_filter(rpcs[0], rpcs[k], pos[0, m], pos[k, m], guide.h_range, spec.tracks.p2l)
             bad = np.flatnonzero(m)[~r.inlier]
             pos[k, bad] = np.nan
             ncc[k, bad] = np.nan

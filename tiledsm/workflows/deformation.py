@@ -269,7 +269,7 @@ def _fault_from_trace(spec: FaultSpec, crs: str) -> Fault:
 def _orient_epochs(spec: DeformationOrientSpec, pre_in, post_in, out: Path, stable_mask, overwrite: bool):
     """Bias-corrected images of both epochs (module notes): ``(pre_in,
     post_in, report)`` with the corrected copies and no separate RPCs."""
-    from tiledsm.orient.spec import orient_for_recipe, polygon_exclusion
+    from tiledsm.orient.step import orient_for_recipe, polygon_exclusion
 
     def rpcs_of(epoch):
         return list(epoch[1]) if epoch[1] is not None else [None] * len(epoch[0])

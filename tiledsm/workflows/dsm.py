@@ -52,7 +52,7 @@ def run_dsm(
     orient_doc = None
     if recipe.orient is not None and inp.images is not None:
         # orient first; the DSM uses the corrected copies (a plan made on the original images is stale)
-        from tiledsm.orient.spec import orient_for_recipe
+        from tiledsm.orient.step import orient_for_recipe
 
         images, rpcs, orient_doc = orient_for_recipe(inp.images, inp.rpcs, recipe.orient, out / "orient", overwrite=overwrite)
         recipe = recipe.model_copy(update={"input": inp.model_copy(update={"images": images, "rpcs": rpcs})})
