@@ -132,3 +132,16 @@ def test_a_run_of_other_options_is_refused_in_a_finished_folder(case, uninterrup
     assert {n: (out / n).read_bytes() for n in EXACT} == before
     ok(run(orient_cmd(case, out, "--model", "shift", "--overwrite")))
     assert yaml.safe_load((out / "recipe.resolved.yaml").read_text())["orient"]["model"] == "shift"
+
+
+def test_a_run_of_an_older_version_with_the_same_options_is_not_another_run(case, uninterrupted, tmp_path):
+    # the folder of a version whose orient: section lacked a field added
+    # since (at its default): the same command runs into it, no --overwrite
+    out = tmp_path / "o"
+    shutil.copytree(uninterrupted, out)
+    resolved = yaml.safe_load((out / "recipe.resolved.yaml").read_text())
+    del resolved["orient"]["tie_sigma_px"]
+    (out / "recipe.resolved.yaml").write_text(yaml.safe_dump(resolved))
+    ok(run(orient_cmd(case, out)))
+    assert yaml.safe_load((out / "recipe.resolved.yaml").read_text())["orient"]["tie_sigma_px"] == 0.3
+    same_products(out, uninterrupted)

@@ -417,12 +417,17 @@ def check_earlier_run(recipe, out: Path, overwrite: bool, name: str = "--out") -
     The message names ``name`` (the option or field of the folder)."""
     import yaml
 
+    from pydantic import ValidationError
+
     stored = out / "recipe.resolved.yaml"
     if overwrite or not stored.is_file():
         return
     try:
-        same = yaml.safe_load(stored.read_text()) == recipe.model_dump(mode="json")
-    except (OSError, yaml.YAMLError):
+        # read through the model: a field added since that run (at its
+        # default) does not make the same options another run
+        earlier = type(recipe).model_validate(yaml.safe_load(stored.read_text()))
+        same = earlier.model_dump(mode="json") == recipe.model_dump(mode="json")
+    except (OSError, yaml.YAMLError, ValidationError, TypeError):
         same = False
     if not same:
         raise InvalidOptionError(f"{out}: {name}: holds a run of other inputs or options ({stored.name}); pass "
