@@ -21,10 +21,11 @@ from tiledsm.compare.coreg import (
     COREG_METHODS,
     CoregistrationError,
     Coregistration,
+    CoregFitSpec,
     NoStableTerrainError,
     register_coreg,
 )
-from tiledsm.compare.recipe import CompareOutput, CompareSpec, CoregFitSpec
+from tiledsm.compare.recipe import CompareOutput, CompareSpec
 from tiledsm.compare.stage import CompareResult, compare_dsms, difference_lazy, fit_coregistration
 from tiledsm.compare.stats import difference_statistics
 
@@ -35,10 +36,10 @@ __all__ = [
     "COREG_METHODS",
     "CoregistrationError",
     "Coregistration",
+    "CoregFitSpec",
     "NoStableTerrainError",
     "register_coreg",
     "CompareSpec",
-    "CoregFitSpec",
     "CompareOutput",
     "CompareResult",
     "compare_dsms",

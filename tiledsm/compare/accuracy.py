@@ -164,7 +164,8 @@ def _moved_back(pair: AlignedPair, chunks: int):
     reference: a reference with many small holes (s2p's has 30 000) would
     lose most of its cells to the interpolation's support; bilinear, so a
     hole of the DSM grows by one cell at most."""
-    from tiledsm.compare.recipe import CompareSpec, CoregFitSpec
+    from tiledsm.compare.coreg import CoregFitSpec
+    from tiledsm.compare.recipe import CompareSpec
     from tiledsm.compare.stage import corrected_lazy, fit_coregistration
 
     onto_reference = align_dsms(pair.other, pair.ref, chunks=chunks)  # same grid: sliced, not resampled

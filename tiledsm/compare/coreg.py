@@ -27,16 +27,18 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
-from typing import Callable
+from typing import Callable, Literal
 
 import numpy as np
+from pydantic import Field, field_validator, model_validator
 
-from tiledsm.compare.recipe import CompareSpec, CoregFitSpec
-from tiledsm.compare.shift import shift_array, shift_halo, shifted_at
+from tiledsm.compare.shift import ShiftKernelError, kernel_taps, shift_array, shift_halo, shifted_at
 from tiledsm.compare.terrain import slope_aspect
 from tiledsm.errors import TiledsmError
+from tiledsm.recipes import StrictModel
 
 __all__ = [
+    "CoregFitSpec",
     "Coregistration",
     "FitWindow",
     "CoregistrationError",
@@ -66,7 +68,47 @@ def nmad(values: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(v - np.median(v))))
 
 
-# --------------------------------------------------------------------------- fit data & result
+# --------------------------------------------------------------------------- parameters, fit data & result
+class CoregFitSpec(StrictModel):
+    """Parameters of the co-registration fit, ``compare.coreg_fit`` of a
+    recipe: Nuth & Kääb's iterations, the samples they use, the subpixel
+    shift. Its outlier rule is ``compare.nmad_k``, its deramp
+    ``compare.deramp`` (the methods' other arguments)."""
+
+    max_iterations: int = Field(10, ge=1, description="Nuth & Kääb iterations at most")
+    tolerance_px: float = Field(0.005, ge=0, description="stop when the shift update is below this, pixels")
+    vertical: Literal["median", "mean"] = Field(
+        "median", description="statistic of the stable dh (inliers) giving the vertical bias")
+    min_slope_deg: float = Field(
+        1.0, ge=0, description="flattest reference slope (degrees) of the samples of the horizontal fit: "
+        "flat cells carry no shift information")
+    max_slope_deg: float = Field(
+        70.0, le=90, description="steepest reference slope (degrees) of the samples of the horizontal fit "
+        "(the statistics' stable terrain is compare.max_slope_deg)")
+    aspect_bins: int = Field(72, ge=3, description="aspect sectors whose median dh / tan(slope) is fitted")
+    min_bin_count: int = Field(20, ge=1, description="sectors with fewer samples are ignored")
+    shift_kernel: str = Field("cubic", description="subpixel interpolation of the shifted DSM: cubic or linear")
+    max_samples: int = Field(
+        500_000, ge=0, description="the iterations use at most this many of the candidate cells (stable, slope in "
+        "range), an evenly strided subset; 0: all of them (the exact fit). The median, NMAD and vertical bias use "
+        "every stable cell")
+
+    @field_validator("shift_kernel")
+    @classmethod
+    def _known_kernel(cls, value: str) -> str:
+        try:
+            kernel_taps(0.5, value)
+        except ShiftKernelError as exc:
+            raise ValueError(str(exc)) from None
+        return value
+
+    @model_validator(mode="after")
+    def _slope_range(self):
+        if not self.min_slope_deg < self.max_slope_deg:
+            raise ValueError(f"need min_slope_deg < max_slope_deg, got {self.min_slope_deg} and {self.max_slope_deg}")
+        return self
+
+
 @dataclass(frozen=True)
 class FitWindow:
     """A window of the common grid loaded in memory for the fit.
@@ -163,9 +205,11 @@ class Coregistration:
 
 
 # --------------------------------------------------------------------------- registry
-CoregFn = Callable[[list, CompareSpec], Coregistration]
-#: name -> fit function ``fn(windows: list[FitWindow], spec: CompareSpec) -> Coregistration``: ``spec.coreg_fit``
-#: holds the fit's parameters, ``spec.nmad_k`` its outlier rule, ``spec.deramp`` whether a plane follows
+CoregFn = Callable[[list, CoregFitSpec, float, bool], Coregistration]
+#: name -> fit function ``fn(windows: list[FitWindow], fit: CoregFitSpec, nmad_k: float, deramp: bool) ->
+#: Coregistration``: ``nmad_k`` is the outlier rule (``|dh - median| > nmad_k x NMAD``), ``deramp`` says a plane
+#: is fitted after (and removed before each horizontal fit); the recipe's ``compare.coreg_fit``, ``compare.nmad_k``
+#: and ``compare.deramp``
 COREG_METHODS: dict[str, CoregFn] = {}
 
 
@@ -245,9 +289,9 @@ def _vertical(dh: np.ndarray, statistic: str) -> float:
 
 # --------------------------------------------------------------------------- methods
 @register_coreg("none")
-def fit_none(windows: list[FitWindow], spec: CompareSpec) -> Coregistration:
+def fit_none(windows: list[FitWindow], fit: CoregFitSpec, nmad_k: float, deramp: bool) -> Coregistration:
     """No co-registration: zero shift and zero vertical offset (statistics only)."""
-    dh, *_ = _samples(windows, (0.0, 0.0), 0.0, spec.coreg_fit.shift_kernel)
+    dh, *_ = _samples(windows, (0.0, 0.0), 0.0, fit.shift_kernel)
     _require_samples(dh.size, "the difference statistics")
     med, s = float(np.median(dh)), nmad(dh)
     return Coregistration("none", n_samples=int(dh.size), median_before=med, nmad_before=s, median_after=med, nmad_after=s)
@@ -331,23 +375,23 @@ def _candidate_samples(windows, cands: list[_Candidates], shift, kernel: str, wi
 
 
 @register_coreg("nuth_kaab")
-def fit_nuth_kaab(windows: list[FitWindow], spec: CompareSpec) -> Coregistration:
+def fit_nuth_kaab(windows: list[FitWindow], fit: CoregFitSpec, nmad_k: float, deramp: bool) -> Coregistration:
     """Nuth & Kääb (2011) iterative shift + vertical bias on stable terrain.
 
     Each iteration shifts the other DSM by the current estimate (subpixel,
     :func:`shift_array`), takes ``dh = other - ref`` on stable cells within
     the slope range, drops ``|dh - median| > nmad_k * NMAD`` outliers,
-    removes the median (vertical bias; a plane with ``spec.deramp``), and fits the median of ``dh / tan(slope)`` in aspect sectors with
+    removes the median (vertical bias; a plane with ``deramp``), and fits the median of ``dh / tan(slope)`` in aspect sectors with
     ``a * cos(b - aspect) + c`` — linear in ``(a cos b, a sin b, c)``, solved
     by least squares. ``(a sin b, a cos b)`` is the remaining displacement of
     the other DSM (metres east, north), converted to pixels and subtracted.
     Slope and aspect come from the reference DSM: the candidate cells, their
     slope's tangent and aspect sector are taken once (:func:`_candidates`),
     so an iteration only shifts and differences. The vertical bias is the
-    median (or mean) stable ``dh`` after the last shift. ``spec.coreg_fit``
-    holds the iterations, slope range, sectors, samples and shift kernel.
+    median (or mean) stable ``dh`` after the last shift. ``fit`` holds the
+    iterations, slope range, sectors, samples and shift kernel.
     """
-    p, k, kernel = spec.coreg_fit, spec.nmad_k, spec.coreg_fit.shift_kernel
+    p, k, kernel = fit, nmad_k, fit.shift_kernel
     # every stable cell, not a subsample: on integer heights (SRTM) the NMAD of a subsample can jump by a
     # whole metre, and the outlier rule of the stable terrain (k x NMAD) with it
     stable = [np.flatnonzero(w.stable) for w in windows]
@@ -365,11 +409,11 @@ def fit_nuth_kaab(windows: list[FitWindow], spec: CompareSpec) -> Coregistration
     cands = _candidates(windows, p, edges)
     it = 0
     for it in range(1, p.max_iterations + 1):
-        dh, tan_slope, sector, rows, cols = _candidate_samples(windows, cands, (dy_px, dx_px), kernel, spec.deramp)
+        dh, tan_slope, sector, rows, cols = _candidate_samples(windows, cands, (dy_px, dx_px), kernel, deramp)
         _require_samples(dh.size, "the Nuth & Kääb fit (slope range)")
         keep = _inliers(dh, k)
         # remove the current vertical bias (or plane) first: bias / tan(slope) is not a constant
-        resid = dh[keep] - (_plane(dh[keep], rows[keep], cols[keep]) if spec.deramp else np.median(dh[keep]))
+        resid = dh[keep] - (_plane(dh[keep], rows[keep], cols[keep]) if deramp else np.median(dh[keep]))
         target = resid / tan_slope[keep]
         idx = sector[keep]
         order = np.argsort(idx, kind="stable")
@@ -419,17 +463,19 @@ def fit_nuth_kaab(windows: list[FitWindow], spec: CompareSpec) -> Coregistration
     )
 
 
-def fit_deramp(windows: list[FitWindow], coreg: Coregistration, spec: CompareSpec, origin: tuple[float, float]) -> Coregistration:
+def fit_deramp(windows: list[FitWindow], coreg: Coregistration, fit: CoregFitSpec, nmad_k: float,
+               origin: tuple[float, float]) -> Coregistration:
     """Add a planar correction ``dz + ramp_col*(col-c0) + ramp_row*(row-r0)``.
 
     Fitted by least squares to the stable inlier ``dh`` left after ``coreg``
     (its shift applied); replaces ``coreg.dz``. ``origin`` is ``(r0, c0)``,
-    normally the grid centre, so ``dz`` stays the offset there.
+    normally the grid centre, so ``dz`` stays the offset there. ``fit``
+    gives the shift kernel, ``nmad_k`` the outliers left out.
     """
-    dh, rows, cols = _samples(windows, (coreg.dy_px, coreg.dx_px), 0.0, spec.coreg_fit.shift_kernel, with_position=True)
+    dh, rows, cols = _samples(windows, (coreg.dy_px, coreg.dx_px), 0.0, fit.shift_kernel, with_position=True)
     _require_samples(dh.size, "the deramp")
     rows, cols = rows - origin[0], cols - origin[1]
-    keep = _inliers(dh + coreg.dz, spec.nmad_k)
+    keep = _inliers(dh + coreg.dz, nmad_k)
     design = np.column_stack([np.ones(keep.sum()), cols[keep], rows[keep]])
     (p0, pc, pr), *_ = np.linalg.lstsq(design, dh[keep], rcond=None)
     after = dh - (p0 + pc * cols + pr * rows)

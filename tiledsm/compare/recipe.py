@@ -1,10 +1,11 @@
 """``pipeline: compare`` (and ``tiledsm compare REF OTHER``): the recipe of
 a DSM comparison, whose sections are the parameters of the stage.
 
-:class:`CompareSpec` (``compare:``, with its nested :class:`CoregFitSpec`,
-``compare.coreg_fit:``) is what :func:`tiledsm.compare.compare_dsms` and
+:class:`CompareSpec` (``compare:``, the fit's parameters nested in it as
+:class:`~tiledsm.compare.coreg.CoregFitSpec`, ``compare.coreg_fit:``) is
+what :func:`tiledsm.compare.compare_dsms` and
 :func:`tiledsm.compare.fit_coregistration` take, and :class:`CompareOutput`
-(``output:``) which products it writes: one type each, filled by the
+(``output:``) says which products it writes: one type each, filled by the
 command's options, a recipe file or Python. Each field with an option
 names it (:func:`tiledsm.recipes.option`), so that a bad value is reported
 under the option (command) or the field path (recipe file); the advanced
@@ -15,12 +16,13 @@ from __future__ import annotations
 
 from typing import Literal, Optional
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, field_validator
 
+from tiledsm.compare.coreg import CoregFitSpec
 from tiledsm.compare.stats import SLOPE_CLASSES
 from tiledsm.recipes import ClusterSpec, StrictModel, option
 
-__all__ = ["CompareInput", "CoregFitSpec", "CompareSpec", "CompareOutput", "CompareRecipe"]
+__all__ = ["CompareInput", "CompareSpec", "CompareOutput", "CompareRecipe"]
 
 
 class CompareInput(StrictModel):
@@ -30,47 +32,6 @@ class CompareInput(StrictModel):
                      json_schema_extra=option("REF"))
     other: str = Field(..., description="DSM to compare (e.g. post-event), brought onto REF's grid",
                        json_schema_extra=option("OTHER"))
-
-
-class CoregFitSpec(StrictModel):
-    """The co-registration fit (:mod:`tiledsm.compare.coreg`): Nuth & Kääb's
-    iterations, the samples they use, the subpixel shift. Its outlier rule
-    is ``compare.nmad_k``, its deramp ``compare.deramp``."""
-
-    max_iterations: int = Field(10, ge=1, description="Nuth & Kääb iterations at most")
-    tolerance_px: float = Field(0.005, ge=0, description="stop when the shift update is below this, pixels")
-    vertical: Literal["median", "mean"] = Field(
-        "median", description="statistic of the stable dh (inliers) giving the vertical bias")
-    min_slope_deg: float = Field(
-        1.0, ge=0, description="flattest reference slope (degrees) of the samples of the horizontal fit: "
-        "flat cells carry no shift information")
-    max_slope_deg: float = Field(
-        70.0, le=90, description="steepest reference slope (degrees) of the samples of the horizontal fit "
-        "(the statistics' stable terrain is compare.max_slope_deg)")
-    aspect_bins: int = Field(72, ge=3, description="aspect sectors whose median dh / tan(slope) is fitted")
-    min_bin_count: int = Field(20, ge=1, description="sectors with fewer samples are ignored")
-    shift_kernel: str = Field("cubic", description="subpixel interpolation of the shifted DSM: cubic or linear")
-    max_samples: int = Field(
-        500_000, ge=0, description="the iterations use at most this many of the candidate cells (stable, slope in "
-        "range), an evenly strided subset; 0: all of them (the exact fit). The median, NMAD and vertical bias use "
-        "every stable cell")
-
-    @field_validator("shift_kernel")
-    @classmethod
-    def _known_kernel(cls, value: str) -> str:
-        from tiledsm.compare.shift import ShiftKernelError, kernel_taps
-
-        try:
-            kernel_taps(0.5, value)
-        except ShiftKernelError as exc:
-            raise ValueError(str(exc)) from None
-        return value
-
-    @model_validator(mode="after")
-    def _slope_range(self):
-        if not self.min_slope_deg < self.max_slope_deg:
-            raise ValueError(f"need min_slope_deg < max_slope_deg, got {self.min_slope_deg} and {self.max_slope_deg}")
-        return self
 
 
 class CompareSpec(StrictModel):
@@ -83,7 +44,8 @@ class CompareSpec(StrictModel):
                          json_schema_extra=option("--deramp"))
     stable_mask: Optional[str] = Field(None, description="GeoJSON polygons EXCLUDED from stable terrain",
                                        json_schema_extra=option("--stable-mask"))
-    max_slope_deg: float = Field(70.0, gt=0, le=90, description="steeper cells (degrees) are not stable terrain",
+    max_slope_deg: float = Field(70.0, gt=0, le=90, description="steeper cells (degrees) are not stable terrain "
+                                 "in the statistics (the fit's samples: coreg_fit.max_slope_deg)",
                                  json_schema_extra=option("--max-slope"))
     nmad_k: float = Field(5.0, gt=0, description="outliers: |dh - median| > nmad_k x NMAD",
                           json_schema_extra=option("--nmad-k"))

@@ -159,10 +159,10 @@ def fit_coregistration(pair: AlignedPair, spec: CompareSpec = CompareSpec(), geo
             f"no stable terrain left to co-register {pair.other.attrs['source']} on {pair.ref.attrs['source']}: "
             f"the exclusion polygons ({spec.stable_mask}) cover every valid cell"
         )
-    coreg = get_coreg(spec.coreg)(windows, spec)
+    coreg = get_coreg(spec.coreg)(windows, spec.coreg_fit, spec.nmad_k, spec.deramp)
     if spec.deramp:
         H, W = pair.ref.shape
-        coreg = fit_deramp(windows, coreg, spec, ((H - 1) / 2, (W - 1) / 2))
+        coreg = fit_deramp(windows, coreg, spec.coreg_fit, spec.nmad_k, ((H - 1) / 2, (W - 1) / 2))
     return coreg
 
 
