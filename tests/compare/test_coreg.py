@@ -4,9 +4,10 @@ import warnings
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 from scipy import ndimage
 
-from tiledsm.compare import CompareParams, CoregParams, align_dsms, fit_coregistration
+from tiledsm.compare import CompareSpec, CoregFitSpec, align_dsms, fit_coregistration
 from tiledsm.compare.coreg import COREG_METHODS, Coregistration, register_coreg, shift_array, shift_halo, shifted_at
 from tiledsm.compare.stage import difference_lazy
 
@@ -61,7 +62,7 @@ def test_nuth_kaab_on_a_subsample_recovers_known_shift(synth, max_samples):
     ref = synth.terrain(*synth.centres(shape))
     oth = synth.terrain(*synth.centres(shape, 1.6, 2.3)) + 1.25
     pair = align_dsms(synth.to_dataarray(ref, "ref"), synth.to_dataarray(oth, "other"), chunks=128)
-    c = fit_coregistration(pair, CompareParams(coreg_params=CoregParams(max_samples=max_samples)))
+    c = fit_coregistration(pair, CompareSpec(coreg_fit=CoregFitSpec(max_samples=max_samples)))
     assert c.dx_px == pytest.approx(2.3, abs=0.01) and c.dy_px == pytest.approx(1.6, abs=0.01)
     assert c.dz == pytest.approx(-1.25, abs=0.01) and c.converged
 
@@ -70,8 +71,8 @@ def test_registry_refuses_duplicates_and_lists_names():
     assert {"nuth_kaab", "none"} <= set(COREG_METHODS)
     with pytest.raises(ValueError, match="already registered"):
         register_coreg("nuth_kaab")(lambda w, p: Coregistration("x"))
-    with pytest.raises(Exception, match="unknown co-registration method 'bogus'.*nuth_kaab"):
-        CompareParams(coreg="bogus")
+    with pytest.raises(ValidationError, match="coreg\n.*unknown co-registration method 'bogus'.*nuth_kaab"):
+        CompareSpec(coreg="bogus")
 
 
 @pytest.mark.parametrize("drow, dcol", [(1.6, 2.3), (-3.25, 0.4)])
@@ -80,7 +81,7 @@ def test_nuth_kaab_recovers_known_shift(synth, drow, dcol):
     ref = synth.terrain(*synth.centres(shape))
     oth = synth.terrain(*synth.centres(shape, drow, dcol)) + 1.25  # other[i,j] = ref(i+drow, j+dcol) + 1.25
     pair = align_dsms(synth.to_dataarray(ref, "ref"), synth.to_dataarray(oth, "other"), chunks=128)
-    c = fit_coregistration(pair, CompareParams())
+    c = fit_coregistration(pair, CompareSpec())
     assert c.dx_px == pytest.approx(dcol, abs=0.01) and c.dy_px == pytest.approx(drow, abs=0.01)
     assert c.dz == pytest.approx(-1.25, abs=0.01)
     assert c.converged and c.nmad_after < 0.05 < c.nmad_before
@@ -94,7 +95,7 @@ def test_deramp_removes_a_tilt(synth):
     ref = synth.terrain(*synth.centres(shape))
     oth = synth.terrain(*synth.centres(shape, 0.5, -0.7)) + 0.002 * c - 0.003 * r + 0.4
     pair = align_dsms(synth.to_dataarray(ref, "ref"), synth.to_dataarray(oth, "other"), chunks=64)
-    co = fit_coregistration(pair, CompareParams(deramp=True))
+    co = fit_coregistration(pair, CompareSpec(deramp=True))
     # shift and tilt are slightly correlated on a 2 km window of long-wavelength terrain
     assert co.ramp_col == pytest.approx(-0.002, abs=1.5e-4) and co.ramp_row == pytest.approx(0.003, abs=1.5e-4)
     assert co.dx_px == pytest.approx(-0.7, abs=0.02) and co.dy_px == pytest.approx(0.5, abs=0.02)
@@ -119,7 +120,7 @@ def test_xdem_nuthkaab_agrees(synth, tmp_path):
     # DEM to align, as ours: dx_px = shift_x / a, dy_px = shift_y / e
     x_dx, x_dy = out["shift_x"] / synth.RES, out["shift_y"] / -synth.RES
     pair = align_dsms(synth.to_dataarray(ref, "ref"), synth.to_dataarray(oth, "other"), chunks=150)
-    c = fit_coregistration(pair, CompareParams())
+    c = fit_coregistration(pair, CompareSpec())
     assert abs(c.dx_px - x_dx) < 0.1 and abs(c.dy_px - x_dy) < 0.1
     assert abs(x_dx - dcol) < 0.1 and abs(x_dy - drow) < 0.1  # xdem itself finds the truth here
 

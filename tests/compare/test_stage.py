@@ -1,13 +1,14 @@
 """The comparison stage end to end: demcompare's SRTM pair, a synthetic earthquake, bad inputs, CLI."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 import rasterio
 
 from tests.conftest import require_shared
-from tiledsm.compare import CompareParams, NoStableTerrainError, compare_dsms
+from tiledsm.compare import CompareOutput, CompareSpec, NoStableTerrainError, compare_dsms
 from tiledsm.errors import InputFileError, NoOverlapError
 
 PRODUCTS = {"dh.zarr", "dh.tif", "dh.png", "dh_hist.png", "dh_slope_classes.png", "metrics.json", "report.html"}
@@ -26,7 +27,7 @@ DEMCOMPARE_SLOPE = {
 def srtm_run(tmp_path_factory):
     d = require_shared("demcompare_dem_pairs", "srtm_shifted")
     out = tmp_path_factory.mktemp("srtm")
-    res = compare_dsms(d / "srtm_ref.tif", d / "srtm_blurred_and_shifted.tif", out, CompareParams(chunks=256))
+    res = compare_dsms(d / "srtm_ref.tif", d / "srtm_blurred_and_shifted.tif", out, CompareSpec(chunk=256))
     return d, res
 
 
@@ -135,7 +136,7 @@ def test_synthetic_event_recovers_misregistration_and_vertical_field(synth, tmp_
     pre, other, truth, r, c = _event(synth)
     gj = _rupture_geojson(synth, tmp_path / "rupture.geojson")
     res = compare_dsms(synth.to_dataarray(pre, "pre"), synth.to_dataarray(other, "post"), tmp_path / "out",
-                       CompareParams(stable_mask=str(gj), chunks=128, figures=False, cog=False))
+                       CompareSpec(stable_mask=str(gj), chunk=128), CompareOutput(quicklook=False, cog=False))
     co = res.coregistration
     assert co.dy_px == pytest.approx(MISREG[0], abs=0.1) and co.dx_px == pytest.approx(MISREG[1], abs=0.1)
     from tiledsm.io import open_product
@@ -161,12 +162,12 @@ def test_synthetic_event_without_polygon_absorbs_signal(synth, tmp_path):
     from tiledsm.compare import align_dsms, fit_coregistration
 
     pair = align_dsms(synth.to_dataarray(pre, "pre"), synth.to_dataarray(other, "post"), chunks=256)
-    masked = fit_coregistration(pair, CompareParams(), [])
+    masked = fit_coregistration(pair, CompareSpec(), [])
     err = np.hypot(masked.dx_px - MISREG[1], masked.dy_px - MISREG[0])
     gj = _rupture_geojson(synth, tmp_path / "r.geojson")
     from tiledsm.compare.stable import read_polygons
 
-    good = fit_coregistration(pair, CompareParams(stable_mask=str(gj)), read_polygons(gj, pair.crs))
+    good = fit_coregistration(pair, CompareSpec(stable_mask=str(gj)), read_polygons(gj, pair.crs))
     err_good = np.hypot(good.dx_px - MISREG[1], good.dy_px - MISREG[0])
     assert err_good < 0.05 and err_good < err
 
@@ -193,7 +194,7 @@ def test_no_stable_terrain_left_is_a_clear_error(synth, tmp_path):
                               "coordinates": [[[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]]]}))
     out = tmp_path / "out"
     with pytest.raises(NoStableTerrainError, match="no stable terrain"):
-        compare_dsms(a, b, out, CompareParams(stable_mask=str(gj)))
+        compare_dsms(a, b, out, CompareSpec(stable_mask=str(gj)))
     assert not out.exists() or not any(out.iterdir())
 
 
@@ -208,7 +209,7 @@ def test_no_overlap_and_bad_geojson(synth, tmp_path):
     bad = tmp_path / "bad.geojson"
     bad.write_text('{"type": "Point", "coordinates": [0, 0]}')
     with pytest.raises(InputFileError, match=r"bad\.geojson.*Point"):
-        compare_dsms(a, a, tmp_path / "o2", CompareParams(stable_mask=str(bad)))
+        compare_dsms(a, a, tmp_path / "o2", CompareSpec(stable_mask=str(bad)))
 
 
 def test_cli_compare(synth, tmp_path, capsys):
@@ -233,7 +234,7 @@ def test_statistics_equal_numpy_on_the_stored_layers_in_any_chunking(synth, tmp_
     runs = {}
     for chunks in (300, 64, 48):
         res = compare_dsms(synth.to_dataarray(pre, "pre"), synth.to_dataarray(other, "post"), tmp_path / f"c{chunks}",
-                           CompareParams(chunks=chunks, cog=False, figures=False, report=False))
+                           CompareSpec(chunk=chunks), CompareOutput(cog=False, quicklook=False, report=False))
         runs[chunks] = res
     ds = open_product(runs[300].out_dir / "dh.zarr")
     dh, st, cls = ds["dh"].values, ds["stable"].values, ds["slope_class"].values
@@ -254,6 +255,90 @@ def test_statistics_equal_numpy_on_the_stored_layers_in_any_chunking(synth, tmp_
         other_ds = open_product(res.out_dir / "dh.zarr")
         assert np.array_equal(other_ds["dh"].values, dh, equal_nan=True)
         assert np.array_equal(other_ds["stable"].values, st) and np.array_equal(other_ds["slope_class"].values, cls)
+
+
+@pytest.mark.parametrize("option, value, problem", [
+    ("--chunks", "8", "greater than or equal to 16"),
+    ("--coreg", "icp", "unknown co-registration method 'icp'; known: none, nuth_kaab"),
+    ("--nmad-k", "0", "greater than 0"),
+    ("--max-slope", "95", "less than or equal to 90"),
+])
+def test_cli_compare_refuses_a_bad_option_naming_it(synth, tmp_path, capsys, option, value, problem):
+    """A bad value is refused by the spec's validation, reported under the
+    option: exit 2, one line, nothing written."""
+    from tiledsm.cli import main
+
+    a = synth.write_tif(tmp_path / "a.tif", synth.terrain(*synth.centres((32, 32))))
+    out = tmp_path / "o"
+    assert main(["compare", str(a), str(a), "--out", str(out), option, value]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"tiledsm compare: error: {option}: Input should be {problem}" or err == (
+        f"tiledsm compare: error: {option}: {problem}"), err
+    assert not out.exists()
+
+
+def _compare_recipe(tmp_path, synth, shape=(96, 96), **sections) -> str:
+    import yaml
+
+    a = synth.write_tif(tmp_path / "a.tif", synth.terrain(*synth.centres(shape)))
+    b = synth.write_tif(tmp_path / "b.tif", synth.terrain(*synth.centres(shape, 0.0, 1.0)))
+    recipe = {"pipeline": "compare", "input": {"ref": str(a), "other": str(b)}, "cluster": {"scheduler": "synchronous"},
+              **sections}
+    path = tmp_path / "recipe.yaml"
+    path.write_text(yaml.safe_dump(recipe))
+    return str(path)
+
+
+@pytest.mark.parametrize("compare, field, problem", [
+    ({"slope_classes": [5.0, 10.0]}, "compare.slope_classes", "[5.0, 10.0] must be increasing from 0"),
+    ({"slope_classes": [0.0, 25.0, 10.0]}, "compare.slope_classes", "must be increasing from 0"),
+    ({"coreg_fit": {"min_slope_deg": 50, "max_slope_deg": 40}}, "compare.coreg_fit",
+     "need min_slope_deg < max_slope_deg, got 50.0 and 40.0"),
+    ({"coreg_fit": {"shift_kernel": "lanczos"}}, "compare.coreg_fit.shift_kernel", "lanczos"),
+    ({"coreg_fit": {"max_samples": -1}}, "compare.coreg_fit.max_samples", "greater than or equal to 0"),
+    ({"coreg_fit": {"vertical": "mode"}}, "compare.coreg_fit.vertical", "'median' or 'mean'"),
+    ({"resampling": "bicubic_spline"}, "compare.resampling", "unknown resampling 'bicubic_spline'"),
+])
+def test_run_refuses_a_bad_advanced_field_naming_it(synth, tmp_path, capsys, compare, field, problem):
+    """The checks of the former parameter dataclasses are the spec's
+    validators: ``tiledsm run`` of a recipe with a bad advanced field exits 2
+    naming the field, before anything is written."""
+    from tiledsm.cli import main
+
+    out = tmp_path / "o"
+    assert main(["run", _compare_recipe(tmp_path, synth, compare=compare), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"{field}: " in err and problem in err, err
+    assert not out.exists()
+
+
+def test_run_passes_the_advanced_fields_to_the_stage(synth, tmp_path, capsys):
+    """Recipe-only fields reach the comparison: two slope classes, the exact
+    fit (``max_samples: 0``), no figures; metrics.json records the sections."""
+    from tiledsm.cli import main
+
+    compare = {"slope_classes": [0.0, 30.0], "coreg_fit": {"max_samples": 0, "shift_kernel": "linear"}, "chunk": 32}
+    output = {"quicklook": False, "report": False}
+    out = tmp_path / "o"
+    assert main(["run", _compare_recipe(tmp_path, synth, compare=compare, output=output), "--out", str(out)]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert list(m["slope_classes"]) == ["[0%;30%[", "[30%;inf["]
+    assert m["coregistration"]["dx_px"] == pytest.approx(1.0, abs=0.02)
+    assert m["params"]["compare"]["coreg_fit"]["max_samples"] == 0 and m["params"]["output"]["quicklook"] is False
+    assert not list(out.glob("*.png")) and not (out / "report.html").exists() and (out / "dh.tif").exists()
+
+
+def test_the_deformation_recipe_compares_with_the_compare_spec():
+    """``compare:`` of a deformation recipe is the comparison stage's own
+    spec (plus the throw's strips), so its advanced fields are the same."""
+    from tiledsm.compare import CompareSpec
+    from tiledsm.pipelines import load_recipe
+
+    r = load_recipe(Path(__file__).parents[2] / "recipes" / "deformation.yaml")
+    assert isinstance(r.compare, CompareSpec)
+    assert (r.compare.coreg, r.compare.chunk, r.compare.strip) == ("nuth_kaab", 256, (3.0, 20.0))
+    assert r.compare.coreg_fit == CompareSpec().coreg_fit and r.compare.nmad_k == 5.0
+    assert type(r.compare)().chunk == 512  # a deformation's default chunk
 
 
 def test_cli_compare_reads_zarr_stores(synth, tmp_path, capsys):
@@ -282,12 +367,12 @@ def test_compare_on_threads_equals_the_synchronous_run(synth, tmp_path):
 
     ref = synth.to_dataarray(synth.terrain(*synth.centres((96, 96))), "height")
     other = synth.to_dataarray(synth.terrain(*synth.centres((96, 96), 0.0, 1.0)) + 0.5, "height")
-    params = CompareParams(chunks=32, figures=False, report=False, cog=False)
+    spec, output = CompareSpec(chunk=32), CompareOutput(quicklook=False, report=False, cog=False)
     results = {}
     for scheduler in ("synchronous", "threads"):
         with compute_context(ClusterConfig(scheduler=scheduler, workers=2, progress=False)):
             assert dask.base.get_scheduler() is (dask.threaded.get if scheduler == "threads" else dask.local.get_sync)
-            results[scheduler] = compare_dsms(ref, other, tmp_path / scheduler, params)
+            results[scheduler] = compare_dsms(ref, other, tmp_path / scheduler, spec, output)
     from tiledsm.io import open_product
 
     a, b = (open_product(results[s].products["dh_zarr"]) for s in ("synchronous", "threads"))

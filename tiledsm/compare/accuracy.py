@@ -164,15 +164,16 @@ def _moved_back(pair: AlignedPair, chunks: int):
     reference: a reference with many small holes (s2p's has 30 000) would
     lose most of its cells to the interpolation's support; bilinear, so a
     hole of the DSM grows by one cell at most."""
-    from tiledsm.compare.coreg import CoregParams
-    from tiledsm.compare.stage import CompareParams, corrected_lazy, fit_coregistration
+    from tiledsm.compare.coreg import CoregFitSpec
+    from tiledsm.compare.recipe import CompareSpec
+    from tiledsm.compare.stage import corrected_lazy, fit_coregistration
 
     onto_reference = align_dsms(pair.other, pair.ref, chunks=chunks)  # same grid: sliced, not resampled
     # the fit holds its windows in this process (a dozen float arrays per cell): 4 Mcells, compare's default,
     # made `tiledsm dsm --reference` 1.47x larger than without at 2048²; three parameters need far fewer cells
-    params = CompareParams(chunks=chunks, coreg_params=CoregParams(shift_kernel="linear"), cog=False, figures=False,
-                           report=False, max_fit_pixels=FIT_CELLS, fit_window=min(FIT_CELLS_WINDOW, chunks))
-    coreg = fit_coregistration(onto_reference, params)
+    spec = CompareSpec(coreg_fit=CoregFitSpec(shift_kernel="linear"), max_fit_pixels=FIT_CELLS,
+                       fit_window=min(FIT_CELLS_WINDOW, chunks))
+    coreg = fit_coregistration(onto_reference, spec)
     r = onto_reference.ref.data
     return coreg, corrected_lazy(onto_reference, coreg, kernel="linear") - r, r
 

@@ -27,16 +27,18 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
-from typing import Callable
+from typing import Callable, Literal
 
 import numpy as np
+from pydantic import Field, field_validator, model_validator
 
 from tiledsm.compare.shift import ShiftKernelError, kernel_taps, shift_array, shift_halo, shifted_at
 from tiledsm.compare.terrain import slope_aspect
 from tiledsm.errors import TiledsmError
+from tiledsm.recipes import StrictModel
 
 __all__ = [
-    "CoregParams",
+    "CoregFitSpec",
     "Coregistration",
     "FitWindow",
     "CoregistrationError",
@@ -66,68 +68,45 @@ def nmad(values: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(v - np.median(v))))
 
 
-# --------------------------------------------------------------------------- parameters & result
-@dataclass(frozen=True)
-class CoregParams:
-    """Parameters of the co-registration fit.
+# --------------------------------------------------------------------------- parameters, fit data & result
+class CoregFitSpec(StrictModel):
+    """Parameters of the co-registration fit, ``compare.coreg_fit`` of a
+    recipe: Nuth & Kääb's iterations, the samples they use, the subpixel
+    shift. Its outlier rule is ``compare.nmad_k``, its deramp
+    ``compare.deramp`` (the methods' other arguments)."""
 
-    Attributes
-    ----------
-    max_iterations : int
-        Nuth & Kääb iterations at most.
-    tolerance_px : float
-        Stop when the shift update is below this (pixels).
-    vertical : str
-        Statistic of stable ``dh`` giving the vertical bias: "median" or "mean".
-    nmad_k : float
-        Samples with ``|dh - median| > nmad_k * NMAD`` are outliers (each iteration).
-    min_slope_deg, max_slope_deg : float
-        Slope range (degrees, from the reference) of the samples used for the
-        horizontal fit (flat cells carry no shift information; very steep ones
-        are unreliable).
-    aspect_bins : int
-        Number of aspect sectors whose median ``dh / tan(slope)`` is fitted.
-    min_bin_count : int
-        Sectors with fewer samples are ignored.
-    shift_kernel : str
-        Subpixel interpolation of the shifted DSM ("cubic" or "linear").
-    deramp : bool
-        Remove a least-squares plane (instead of the median) from ``dh``
-        before each horizontal fit, so a tilt does not bias the shift; set
-        by :class:`~tiledsm.compare.stage.CompareParams` ``deramp``.
-    max_samples : int
-        The horizontal fit's iterations use at most this many of the
-        candidate cells (stable, slope in range): an evenly strided subset,
-        as xdem subsamples; the shifted DSM is interpolated at those cells
-        only. 0: all of them. The median and NMAD before and after, and the
-        vertical bias, use every stable cell.
-    """
+    max_iterations: int = Field(10, ge=1, description="Nuth & Kääb iterations at most")
+    tolerance_px: float = Field(0.005, ge=0, description="stop when the shift update is below this, pixels")
+    vertical: Literal["median", "mean"] = Field(
+        "median", description="statistic of the stable dh (inliers) giving the vertical bias")
+    min_slope_deg: float = Field(
+        1.0, ge=0, description="flattest reference slope (degrees) of the samples of the horizontal fit: "
+        "flat cells carry no shift information")
+    max_slope_deg: float = Field(
+        70.0, le=90, description="steepest reference slope (degrees) of the samples of the horizontal fit "
+        "(the statistics' stable terrain is compare.max_slope_deg)")
+    aspect_bins: int = Field(72, ge=3, description="aspect sectors whose median dh / tan(slope) is fitted")
+    min_bin_count: int = Field(20, ge=1, description="sectors with fewer samples are ignored")
+    shift_kernel: str = Field("cubic", description="subpixel interpolation of the shifted DSM: cubic or linear")
+    max_samples: int = Field(
+        500_000, ge=0, description="the iterations use at most this many of the candidate cells (stable, slope in "
+        "range), an evenly strided subset; 0: all of them (the exact fit). The median, NMAD and vertical bias use "
+        "every stable cell")
 
-    max_iterations: int = 10
-    tolerance_px: float = 0.005
-    vertical: str = "median"
-    nmad_k: float = 5.0
-    min_slope_deg: float = 1.0
-    max_slope_deg: float = 70.0
-    aspect_bins: int = 72
-    min_bin_count: int = 20
-    shift_kernel: str = "cubic"
-    deramp: bool = False
-    max_samples: int = 500_000
-
-    def __post_init__(self):
-        if self.vertical not in ("median", "mean"):
-            raise CoregistrationError(f"CoregParams.vertical: {self.vertical!r} is not 'median' or 'mean'")
-        if self.max_iterations < 1:
-            raise CoregistrationError("CoregParams.max_iterations must be >= 1")
-        if self.max_samples < 0:
-            raise CoregistrationError("CoregParams.max_samples must be >= 0 (0: every candidate cell)")
-        if not 0 <= self.min_slope_deg < self.max_slope_deg <= 90:
-            raise CoregistrationError("CoregParams: need 0 <= min_slope_deg < max_slope_deg <= 90")
+    @field_validator("shift_kernel")
+    @classmethod
+    def _known_kernel(cls, value: str) -> str:
         try:
-            kernel_taps(0.5, self.shift_kernel)
+            kernel_taps(0.5, value)
         except ShiftKernelError as exc:
-            raise CoregistrationError(str(exc)) from None
+            raise ValueError(str(exc)) from None
+        return value
+
+    @model_validator(mode="after")
+    def _slope_range(self):
+        if not self.min_slope_deg < self.max_slope_deg:
+            raise ValueError(f"need min_slope_deg < max_slope_deg, got {self.min_slope_deg} and {self.max_slope_deg}")
+        return self
 
 
 @dataclass(frozen=True)
@@ -226,8 +205,11 @@ class Coregistration:
 
 
 # --------------------------------------------------------------------------- registry
-CoregFn = Callable[[list, CoregParams], Coregistration]
-#: name -> fit function ``fn(windows: list[FitWindow], params) -> Coregistration``
+CoregFn = Callable[[list, CoregFitSpec, float, bool], Coregistration]
+#: name -> fit function ``fn(windows: list[FitWindow], fit: CoregFitSpec, nmad_k: float, deramp: bool) ->
+#: Coregistration``: ``nmad_k`` is the outlier rule (``|dh - median| > nmad_k x NMAD``), ``deramp`` says a plane
+#: is fitted after (and removed before each horizontal fit); the recipe's ``compare.coreg_fit``, ``compare.nmad_k``
+#: and ``compare.deramp``
 COREG_METHODS: dict[str, CoregFn] = {}
 
 
@@ -252,12 +234,13 @@ def get_coreg(name: str) -> CoregFn:
 
 
 # --------------------------------------------------------------------------- fitting helpers
-def _samples(windows, shift, dz, params, with_position: bool = False):
-    """Pool ``dh`` of stable, valid cells (and their grid ``rows``, ``cols``
-    ``with_position``, else ``None``)."""
+def _samples(windows, shift, dz, kernel: str, with_position: bool = False):
+    """Pool ``dh`` of stable, valid cells, the other DSM shifted by ``shift``
+    with ``kernel`` (and their grid ``rows``, ``cols`` ``with_position``,
+    else ``None``)."""
     dhs, rows, cols = [], [], []
     for w in windows:
-        moved = w.other if shift == (0.0, 0.0) else shift_array(w.other, shift[0], shift[1], params.shift_kernel)
+        moved = w.other if shift == (0.0, 0.0) else shift_array(w.other, shift[0], shift[1], kernel)
         dh = moved.astype(np.float64) + dz - w.ref
         ok = w.stable & np.isfinite(dh)
         dhs.append(dh[ok])
@@ -300,15 +283,15 @@ def _plane(dh: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     return design @ coef
 
 
-def _vertical(dh: np.ndarray, params: CoregParams) -> float:
-    return float(np.median(dh) if params.vertical == "median" else np.mean(dh))
+def _vertical(dh: np.ndarray, statistic: str) -> float:
+    return float(np.median(dh) if statistic == "median" else np.mean(dh))
 
 
 # --------------------------------------------------------------------------- methods
 @register_coreg("none")
-def fit_none(windows: list[FitWindow], params: CoregParams) -> Coregistration:
+def fit_none(windows: list[FitWindow], fit: CoregFitSpec, nmad_k: float, deramp: bool) -> Coregistration:
     """No co-registration: zero shift and zero vertical offset (statistics only)."""
-    dh, *_ = _samples(windows, (0.0, 0.0), 0.0, params)
+    dh, *_ = _samples(windows, (0.0, 0.0), 0.0, fit.shift_kernel)
     _require_samples(dh.size, "the difference statistics")
     med, s = float(np.median(dh)), nmad(dh)
     return Coregistration("none", n_samples=int(dh.size), median_before=med, nmad_before=s, median_after=med, nmad_after=s)
@@ -333,7 +316,7 @@ def _strided(indices: list[np.ndarray], max_samples: int) -> list[np.ndarray]:
     return [i[::stride] for i in indices]
 
 
-def _dh_at(windows, indices: list[np.ndarray], shift, params: CoregParams) -> list[np.ndarray]:
+def _dh_at(windows, indices: list[np.ndarray], shift, kernel: str) -> list[np.ndarray]:
     """Per window, ``dh = other(shifted) - ref`` (float64) at its flat ``indices``
     (the arithmetic of :func:`_samples`, NaN kept)."""
     out = []
@@ -341,7 +324,7 @@ def _dh_at(windows, indices: list[np.ndarray], shift, params: CoregParams) -> li
         if shift == (0.0, 0.0):
             moved = w.other.ravel()[index]
         else:
-            moved = shifted_at(w.other, index, shift[0], shift[1], params.shift_kernel)
+            moved = shifted_at(w.other, index, shift[0], shift[1], kernel)
         out.append(moved.astype(np.float64) + 0.0 - w.ref.ravel()[index])
     return out
 
@@ -351,34 +334,34 @@ def _finite(dhs: list[np.ndarray]) -> np.ndarray:
     return np.concatenate([d[np.isfinite(d)] for d in dhs]) if dhs else np.empty(0)
 
 
-def _candidates(windows, params: CoregParams, edges: np.ndarray) -> list[_Candidates]:
+def _candidates(windows, fit: CoregFitSpec, edges: np.ndarray) -> list[_Candidates]:
     """Per window, the stable cells within the slope range (slope and aspect of
     the reference, :func:`slope_aspect`), every ``stride``-th of them when
-    there are more than ``params.max_samples``; the full-window slope and
+    there are more than ``fit.max_samples``; the full-window slope and
     aspect are dropped at once, so the fit holds a few numbers per sample."""
     found = []
     for w in windows:
         slope, aspect = slope_aspect(w.ref, w.step_x, w.step_y)
-        index = np.flatnonzero(w.stable & (slope >= params.min_slope_deg) & (slope <= params.max_slope_deg))
+        index = np.flatnonzero(w.stable & (slope >= fit.min_slope_deg) & (slope <= fit.max_slope_deg))
         found.append((index, slope.ravel()[index], aspect.ravel()[index]))
         del slope, aspect
-    kept = _strided([np.arange(f[0].size) for f in found], params.max_samples)
+    kept = _strided([np.arange(f[0].size) for f in found], fit.max_samples)
     out = []
     for (index, slope, aspect), k in zip(found, kept):
         index, slope, aspect = index[k], slope[k], aspect[k]
-        sector = np.clip(np.digitize(aspect, edges) - 1, 0, params.aspect_bins - 1)
+        sector = np.clip(np.digitize(aspect, edges) - 1, 0, fit.aspect_bins - 1)
         out.append(_Candidates(index, np.tan(np.deg2rad(slope)), sector.astype(np.int16)))
     return out
 
 
-def _candidate_samples(windows, cands: list[_Candidates], shift, params: CoregParams, with_position: bool):
+def _candidate_samples(windows, cands: list[_Candidates], shift, kernel: str, with_position: bool):
     """``(dh, tan_slope, sector, rows, cols)`` of the candidates whose
     ``dh = other(shifted) - ref`` is finite, pooled window by window in row-major
     order (with every candidate: the cells, order and values of
     :func:`_samples`); the shifted DSM is interpolated at the candidates only
     (:func:`shifted_at`). ``rows``/``cols`` only ``with_position``, else ``None``."""
     dhs, tans, sectors, rows, cols = [], [], [], [], []
-    for w, c, dh in zip(windows, cands, _dh_at(windows, [c.index for c in cands], shift, params)):
+    for w, c, dh in zip(windows, cands, _dh_at(windows, [c.index for c in cands], shift, kernel)):
         ok = np.isfinite(dh)
         dhs.append(dh[ok])
         tans.append(c.tan_slope[ok])
@@ -392,26 +375,27 @@ def _candidate_samples(windows, cands: list[_Candidates], shift, params: CoregPa
 
 
 @register_coreg("nuth_kaab")
-def fit_nuth_kaab(windows: list[FitWindow], params: CoregParams) -> Coregistration:
+def fit_nuth_kaab(windows: list[FitWindow], fit: CoregFitSpec, nmad_k: float, deramp: bool) -> Coregistration:
     """Nuth & Kääb (2011) iterative shift + vertical bias on stable terrain.
 
     Each iteration shifts the other DSM by the current estimate (subpixel,
     :func:`shift_array`), takes ``dh = other - ref`` on stable cells within
     the slope range, drops ``|dh - median| > nmad_k * NMAD`` outliers,
-    removes the median (vertical bias), and fits the median of ``dh / tan(slope)`` in aspect sectors with
+    removes the median (vertical bias; a plane with ``deramp``), and fits the median of ``dh / tan(slope)`` in aspect sectors with
     ``a * cos(b - aspect) + c`` — linear in ``(a cos b, a sin b, c)``, solved
     by least squares. ``(a sin b, a cos b)`` is the remaining displacement of
     the other DSM (metres east, north), converted to pixels and subtracted.
     Slope and aspect come from the reference DSM: the candidate cells, their
     slope's tangent and aspect sector are taken once (:func:`_candidates`),
     so an iteration only shifts and differences. The vertical bias is the
-    median (or mean) stable ``dh`` after the last shift.
+    median (or mean) stable ``dh`` after the last shift. ``fit`` holds the
+    iterations, slope range, sectors, samples and shift kernel.
     """
-    p = params
+    p, k, kernel = fit, nmad_k, fit.shift_kernel
     # every stable cell, not a subsample: on integer heights (SRTM) the NMAD of a subsample can jump by a
     # whole metre, and the outlier rule of the stable terrain (k x NMAD) with it
     stable = [np.flatnonzero(w.stable) for w in windows]
-    dh0 = _finite(_dh_at(windows, stable, (0.0, 0.0), p))
+    dh0 = _finite(_dh_at(windows, stable, (0.0, 0.0), kernel))
     _require_samples(dh0.size, "co-registration")
     med0 = float(np.median(dh0))
     nmad0 = nmad(dh0)
@@ -425,11 +409,11 @@ def fit_nuth_kaab(windows: list[FitWindow], params: CoregParams) -> Coregistrati
     cands = _candidates(windows, p, edges)
     it = 0
     for it in range(1, p.max_iterations + 1):
-        dh, tan_slope, sector, rows, cols = _candidate_samples(windows, cands, (dy_px, dx_px), p, p.deramp)
+        dh, tan_slope, sector, rows, cols = _candidate_samples(windows, cands, (dy_px, dx_px), kernel, deramp)
         _require_samples(dh.size, "the Nuth & Kääb fit (slope range)")
-        keep = _inliers(dh, p.nmad_k)
+        keep = _inliers(dh, k)
         # remove the current vertical bias (or plane) first: bias / tan(slope) is not a constant
-        resid = dh[keep] - (_plane(dh[keep], rows[keep], cols[keep]) if p.deramp else np.median(dh[keep]))
+        resid = dh[keep] - (_plane(dh[keep], rows[keep], cols[keep]) if deramp else np.median(dh[keep]))
         target = resid / tan_slope[keep]
         idx = sector[keep]
         order = np.argsort(idx, kind="stable")
@@ -458,10 +442,10 @@ def fit_nuth_kaab(windows: list[FitWindow], params: CoregParams) -> Coregistrati
             converged = True
             break
     del cands
-    dh = _finite(_dh_at(windows, stable, (dy_px, dx_px), p))
+    dh = _finite(_dh_at(windows, stable, (dy_px, dx_px), kernel))
     _require_samples(dh.size, "the vertical bias")
-    inl = _inliers(dh, p.nmad_k)
-    dz = -_vertical(dh[inl], p) + 0.0
+    inl = _inliers(dh, k)
+    dz = -_vertical(dh[inl], p.vertical) + 0.0
     after = dh + dz
     return Coregistration(
         "nuth_kaab",
@@ -479,17 +463,19 @@ def fit_nuth_kaab(windows: list[FitWindow], params: CoregParams) -> Coregistrati
     )
 
 
-def fit_deramp(windows: list[FitWindow], coreg: Coregistration, params: CoregParams, origin: tuple[float, float]) -> Coregistration:
+def fit_deramp(windows: list[FitWindow], coreg: Coregistration, fit: CoregFitSpec, nmad_k: float,
+               origin: tuple[float, float]) -> Coregistration:
     """Add a planar correction ``dz + ramp_col*(col-c0) + ramp_row*(row-r0)``.
 
     Fitted by least squares to the stable inlier ``dh`` left after ``coreg``
     (its shift applied); replaces ``coreg.dz``. ``origin`` is ``(r0, c0)``,
-    normally the grid centre, so ``dz`` stays the offset there.
+    normally the grid centre, so ``dz`` stays the offset there. ``fit``
+    gives the shift kernel, ``nmad_k`` the outliers left out.
     """
-    dh, rows, cols = _samples(windows, (coreg.dy_px, coreg.dx_px), 0.0, params, with_position=True)
+    dh, rows, cols = _samples(windows, (coreg.dy_px, coreg.dx_px), 0.0, fit.shift_kernel, with_position=True)
     _require_samples(dh.size, "the deramp")
     rows, cols = rows - origin[0], cols - origin[1]
-    keep = _inliers(dh + coreg.dz, params.nmad_k)
+    keep = _inliers(dh + coreg.dz, nmad_k)
     design = np.column_stack([np.ones(keep.sum()), cols[keep], rows[keep]])
     (p0, pc, pr), *_ = np.linalg.lstsq(design, dh[keep], rcond=None)
     after = dh - (p0 + pc * cols + pr * rows)

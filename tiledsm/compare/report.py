@@ -1,7 +1,7 @@
 """Figures and the HTML report of a DSM comparison.
 
 Figures are drawn from decimated arrays (longest edge
-``params.quicklook_size``; strided, gathered by the stage in the same pass
+``output.quicklook_size``; strided, gathered by the stage in the same pass
 that computes ``dh``, so no process holds a full-resolution grid) and from
 the statistics' histogram, so they cost little whatever the grid size:
 
@@ -31,11 +31,12 @@ def _png(fig) -> bytes:
     return buf.getvalue()
 
 
-def make_figures(dh, ref, step: int, pair, hs, part, stats, labels, params, geoms=()) -> dict[str, bytes]:
+def make_figures(dh, ref, step: int, pair, hs, part, stats, labels, spec, geoms=()) -> dict[str, bytes]:
     """PNG bytes of the three figures (see the module notes).
 
     ``dh`` and ``ref`` are the common grid's difference and reference
-    heights strided by ``step`` cells (``a[::step, ::step]``).
+    heights strided by ``step`` cells (``a[::step, ::step]``); ``spec``
+    the :class:`~tiledsm.compare.recipe.CompareSpec` of the comparison.
     """
     import matplotlib
 
@@ -67,7 +68,7 @@ def make_figures(dh, ref, step: int, pair, hs, part, stats, labels, params, geom
     ax.set_xlim(b[0], b[2])  # polygons reaching beyond the grid must not shrink the map
     ax.set_ylim(b[1], b[3])
     fig.colorbar(im, ax=ax, label="dh = other - ref (m)", shrink=0.8)
-    ax.set_title(f"dh after co-registration ({params.coreg}); black: excluded areas")
+    ax.set_title(f"dh after co-registration ({spec.coreg}); black: excluded areas")
     ax.set_xlabel(f"x ({pair.crs.to_string()})")
     figs["dh"] = _png(fig)
     plt.close(fig)

@@ -26,5 +26,6 @@ def run_compare(recipe, out: Path, cluster=None, overwrite: bool = False, plan=N
 
     warnings = list(plan.warnings) if plan is not None else []
     with compute_context(cluster or recipe.cluster.config()):
-        result = compare_dsms(recipe.input.ref, recipe.input.other, out, recipe.params(), warnings=warnings)
+        result = compare_dsms(recipe.input.ref, recipe.input.other, out, recipe.compare, recipe.output,
+                              warnings=warnings)
     return result.metrics

@@ -1,24 +1,26 @@
 """The DSM comparison stage: align, co-register, difference, measure, report.
 
-``compare_dsms(ref, other, out_dir, params)`` writes into ``out_dir``:
+``compare_dsms(ref, other, out_dir, spec, output)`` (the ``compare:`` and
+``output:`` sections of the recipe, :mod:`tiledsm.compare.recipe`) writes
+into ``out_dir``:
 
 - ``dh.zarr``: Dataset on the common grid with ``dh`` (float32, metres,
   ``other_corrected - ref``, NaN = no difference), ``stable`` (uint8: 0 no
   difference, 1 stable terrain, 2 not stable) and ``slope_class`` (uint8
-  index into ``params.slope_classes`` from the reference slope in percent,
+  index into ``spec.slope_classes`` from the reference slope in percent,
   255 = undefined);
-- ``dh.tif``: the same ``dh`` as a Cloud-Optimised GeoTIFF;
+- ``dh.tif``: the same ``dh`` as a Cloud-Optimised GeoTIFF (``output.cog``);
 - ``dh.png`` (dh over the reference hillshade, with colour bar),
-  ``dh_hist.png``, ``dh_slope_classes.png``;
+  ``dh_hist.png``, ``dh_slope_classes.png`` (``output.quicklook``);
 - ``metrics.json``: ``coregistration: {dx, dy, dz, dx_px, dy_px, dx_m,
   dy_m, ...}`` and the statistics (all / stable / unstable / slope classes);
-- ``report.html``: tables and the figures embedded.
+- ``report.html``: tables and the figures embedded (``output.report``).
 
 Nothing is written before the inputs are validated and the co-registration
 is fitted; products are written to a hidden staging folder inside
 ``out_dir`` and moved into place only when all of them succeeded.
 
-Tiling: the common grid is chunked (``params.chunks``); the shift is
+Tiling: the common grid is chunked (``spec.chunk``); the shift is
 applied with ``map_overlap`` (halo = ``ceil(|shift|)`` + kernel support),
 slope with a halo of 1, polygon masks and the stable/slope-class layers with
 ``map_blocks`` (compiled kernels, same arithmetic as their numpy forms).
@@ -41,7 +43,7 @@ import os
 import shutil
 import time
 import uuid
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass
 from functools import lru_cache, partial
 from pathlib import Path
 from typing import Sequence
@@ -57,7 +59,6 @@ from affine import Affine
 from tiledsm.compare.align import AlignedPair, align_dsms, open_dsm
 from tiledsm.compare.export import jsonable
 from tiledsm.compare.coreg import (
-    CoregParams,
     Coregistration,
     FitWindow,
     NoStableTerrainError,
@@ -66,78 +67,18 @@ from tiledsm.compare.coreg import (
     shift_array,
     shift_halo,
 )
+from tiledsm.compare.recipe import CompareOutput, CompareSpec
 from tiledsm.compare.stable import exclusion_mask, exclusion_mask_lazy, read_polygons
-from tiledsm.compare.stats import SLOPE_CLASSES, HistogramStats, slope_class_labels
+from tiledsm.compare.stats import HistogramStats, slope_class_labels
 from tiledsm.compare.terrain import metric_steps, slope_percent
-from tiledsm.errors import InputFileError, NoOverlapError, TiledsmError
+from tiledsm.errors import InputFileError, NoOverlapError
 
-__all__ = ["CompareParams", "CompareResult", "compare_dsms", "difference_lazy", "fit_coregistration"]
+__all__ = ["CompareResult", "compare_dsms", "difference_lazy", "fit_coregistration"]
 
 log = logging.getLogger("tiledsm.compare")
 
 STABLE_NONE, STABLE_YES, STABLE_NO = 0, 1, 2
 NO_CLASS = 255
-
-
-@dataclass(frozen=True)
-class CompareParams:
-    """Parameters of :func:`compare_dsms`.
-
-    Attributes
-    ----------
-    coreg : str
-        Co-registration method (:data:`tiledsm.compare.coreg.COREG_METHODS`):
-        "nuth_kaab" or "none".
-    deramp : bool
-        Also fit and remove a plane from the stable ``dh``.
-    coreg_params : CoregParams
-        Fit parameters (iterations, outlier ``nmad_k``, slope range, kernel).
-    stable_mask : str or None
-        GeoJSON of areas to **exclude** from stable terrain (rupture zone).
-    max_slope_deg : float
-        Cells steeper than this on the reference are not stable terrain
-        (statistics); the fit also uses ``coreg_params.max_slope_deg``.
-    chunks : int
-        Chunk edge (cells) of the common grid.
-    resampling : str
-        Resampling of the other DSM onto the reference grid when needed.
-    slope_classes : tuple of float
-        Lower bounds (percent) of the slope classes.
-    max_fit_pixels : int
-        At most this many cells are loaded for the fit; larger grids are
-        sampled with ``fit_window``-sized windows on a regular lattice.
-    fit_window : int
-        Edge (cells) of those windows.
-    hist_bins : int
-        Bins of the histogram giving median/NMAD of large grids.
-    cog, figures, report : bool
-        Write ``dh.tif``, the PNG quick-looks, ``report.html``.
-    quicklook_size : int
-        Longest edge (pixels) of the decimated arrays drawn in figures.
-    """
-
-    coreg: str = "nuth_kaab"
-    deramp: bool = False
-    coreg_params: CoregParams = field(default_factory=CoregParams)
-    stable_mask: str | None = None
-    max_slope_deg: float = 70.0
-    chunks: int = 1024
-    resampling: str = "bilinear"
-    slope_classes: tuple = SLOPE_CLASSES
-    max_fit_pixels: int = 4_000_000
-    fit_window: int = 512
-    hist_bins: int = 65536
-    cog: bool = True
-    figures: bool = True
-    report: bool = True
-    quicklook_size: int = 1500
-
-    def __post_init__(self):
-        get_coreg(self.coreg)  # unknown name -> clear error now
-        if self.chunks < 16:
-            raise TiledsmError(f"CompareParams.chunks: {self.chunks} is too small (>= 16)")
-        if list(self.slope_classes) != sorted(self.slope_classes) or self.slope_classes[0] != 0:
-            raise TiledsmError(f"CompareParams.slope_classes: {self.slope_classes} must be increasing from 0")
 
 
 @dataclass(frozen=True)
@@ -161,14 +102,14 @@ class CompareResult:
 
 
 # --------------------------------------------------------------------------- fit
-def _fit_windows(pair: AlignedPair, geoms, params: CompareParams) -> list[FitWindow]:
+def _fit_windows(pair: AlignedPair, geoms, spec: CompareSpec) -> list[FitWindow]:
     """Windows of the common grid loaded for the fit (all of it when small)."""
     H, W = pair.ref.shape
-    if H * W <= params.max_fit_pixels:
+    if H * W <= spec.max_fit_pixels:
         boxes = [(0, H, 0, W)]
     else:
-        ws = min(params.fit_window, H, W)
-        n = max(1, params.max_fit_pixels // (ws * ws))
+        ws = min(spec.fit_window, H, W)
+        n = max(1, spec.max_fit_pixels // (ws * ws))
         ny = max(1, min(H // ws, round(math.sqrt(n * H / W))))
         nx = max(1, min(W // ws, n // ny))
         rs = np.linspace(0, H - ws, ny).astype(int)
@@ -204,19 +145,24 @@ def _check_valid(pair: AlignedPair, windows: list[FitWindow]) -> None:
         raise NoOverlapError(f"{rname} and {oname}: their bounds overlap but no cell has a valid height in both")
 
 
-def fit_coregistration(pair: AlignedPair, params: CompareParams, geoms=()) -> Coregistration:
-    """Fit the co-registration of ``pair`` on its stable terrain (in memory)."""
-    windows = _fit_windows(pair, list(geoms), params)
+def fit_coregistration(pair: AlignedPair, spec: CompareSpec = CompareSpec(), geoms=()) -> Coregistration:
+    """Fit the co-registration of ``pair`` on its stable terrain (in memory).
+
+    ``spec``: the method (``coreg``), its fit (``coreg_fit``, ``nmad_k``,
+    ``deramp``) and the cells loaded for it (``max_fit_pixels``,
+    ``fit_window``); ``geoms``: the exclusion polygons (of
+    ``spec.stable_mask``) in the pair's CRS.
+    """
+    windows = _fit_windows(pair, list(geoms), spec)
     if not any(w.stable.any() for w in windows):
         raise NoStableTerrainError(
             f"no stable terrain left to co-register {pair.other.attrs['source']} on {pair.ref.attrs['source']}: "
-            f"the exclusion polygons ({params.stable_mask}) cover every valid cell"
+            f"the exclusion polygons ({spec.stable_mask}) cover every valid cell"
         )
-    cp = replace(params.coreg_params, deramp=params.deramp)
-    coreg = get_coreg(params.coreg)(windows, cp)
-    if params.deramp:
+    coreg = get_coreg(spec.coreg)(windows, spec.coreg_fit, spec.nmad_k, spec.deramp)
+    if spec.deramp:
         H, W = pair.ref.shape
-        coreg = fit_deramp(windows, coreg, cp, ((H - 1) / 2, (W - 1) / 2))
+        coreg = fit_deramp(windows, coreg, spec.coreg_fit, spec.nmad_k, ((H - 1) / 2, (W - 1) / 2))
     return coreg
 
 
@@ -408,8 +354,8 @@ def _move_into(staging: Path, out: Path) -> None:
     staging.rmdir()
 
 
-def compare_dsms(ref, other, out_dir: str | Path, params: CompareParams = CompareParams(),
-                 warnings: Sequence[str] = ()) -> CompareResult:
+def compare_dsms(ref, other, out_dir: str | Path, spec: CompareSpec = CompareSpec(),
+                 output: CompareOutput = CompareOutput(), warnings: Sequence[str] = ()) -> CompareResult:
     """Compare two DSMs: co-register ``other`` on ``ref``, difference, measure, report.
 
     Parameters
@@ -421,7 +367,12 @@ def compare_dsms(ref, other, out_dir: str | Path, params: CompareParams = Compar
         metres; any CRS and resolution (other is brought onto ref's grid).
     out_dir : path
         Output folder (created); products listed in the module notes.
-    params : CompareParams
+    spec : CompareSpec
+        The ``compare:`` section of the recipe: co-registration, stable
+        terrain, statistics, chunking.
+    output : CompareOutput
+        The ``output:`` section: which of ``dh.tif``, the figures and
+        ``report.html`` are written.
     warnings : sequence of str
         What the run's plan found worth saying, written into
         ``metrics.json`` (``warnings``).
@@ -441,22 +392,21 @@ def compare_dsms(ref, other, out_dir: str | Path, params: CompareParams = Compar
     """
     t0 = time.perf_counter()
     out = Path(out_dir)
-    ref_da = _as_input(ref, params.chunks)
-    oth_da = _as_input(other, params.chunks)
-    pair = align_dsms(ref_da, oth_da, params.chunks, params.resampling)
-    geoms = read_polygons(params.stable_mask, pair.crs) if params.stable_mask else []
-    coreg = fit_coregistration(pair, params, geoms)
+    ref_da = _as_input(ref, spec.chunk)
+    oth_da = _as_input(other, spec.chunk)
+    pair = align_dsms(ref_da, oth_da, spec.chunk, spec.resampling)
+    geoms = read_polygons(spec.stable_mask, pair.crs) if spec.stable_mask else []
+    coreg = fit_coregistration(pair, spec, geoms)
     t_fit = time.perf_counter() - t0
     log.info("co-registration %s: dx=%.3f px dy=%.3f px dz=%.3f m", coreg.method, coreg.dx_px, coreg.dy_px, coreg.dz)
 
     # ---- lazy products
-    cp = params.coreg_params
-    dh = difference_lazy(pair, coreg, cp.shift_kernel)
+    dh = difference_lazy(pair, coreg, spec.coreg_fit.shift_kernel)
     slope = _slope_lazy(pair)
     excluded = exclusion_mask_lazy(geoms, pair.transform, pair.ref.data)
     layers = da.map_blocks(
-        _class_block, slope, excluded, dh, np.asarray(params.slope_classes, float), params.max_slope_deg,
-        coreg.median_after, coreg.nmad_after, cp.nmad_k,
+        _class_block, slope, excluded, dh, np.asarray(spec.slope_classes, float), spec.max_slope_deg,
+        coreg.median_after, coreg.nmad_after, spec.nmad_k,
         dtype=np.uint8, new_axis=0, chunks=((2,),) + dh.chunks, meta=np.empty((0, 0, 0), np.uint8),
     )
     coords = {"y": pair.ref.y, "x": pair.ref.x}
@@ -464,7 +414,7 @@ def compare_dsms(ref, other, out_dir: str | Path, params: CompareParams = Compar
         {
             "dh": (("y", "x"), dh, {"units": "m", "long_name": "other_corrected - ref"}),
             "stable": (("y", "x"), layers[0], {"flag_values": "0 1 2", "flag_meanings": "no_dh stable not_stable"}),
-            "slope_class": (("y", "x"), layers[1], {"flag_values": "0..n-1 255", "lower_bounds_percent": json.dumps(list(params.slope_classes))}),
+            "slope_class": (("y", "x"), layers[1], {"flag_values": "0..n-1 255", "lower_bounds_percent": json.dumps(list(spec.slope_classes))}),
         },
         coords=coords,
         attrs={"ref": pair.ref.attrs["source"], "other": pair.other.attrs["source"], "coregistration": json.dumps(jsonable(coreg.to_dict()))},
@@ -476,7 +426,7 @@ def compare_dsms(ref, other, out_dir: str | Path, params: CompareParams = Compar
     staging = out / f".compare.tmp-{uuid.uuid4().hex[:10]}"
     staging.mkdir()
     try:
-        products = _write_products(ds, pair, coreg, geoms, params, staging, t0, t_fit, list(warnings))
+        products = _write_products(ds, pair, coreg, geoms, spec, output, staging, t0, t_fit, list(warnings))
         _move_into(staging, out)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
@@ -485,8 +435,8 @@ def compare_dsms(ref, other, out_dir: str | Path, params: CompareParams = Compar
     return CompareResult(out, coreg, metrics, {k: out / Path(v).name for k, v in products.items()})
 
 
-def _write_products(ds, pair, coreg, geoms, params, staging: Path, t0: float, t_fit: float,
-                    warnings: list[str]) -> dict:
+def _write_products(ds, pair, coreg, geoms, spec: CompareSpec, output: CompareOutput, staging: Path, t0: float,
+                    t_fit: float, warnings: list[str]) -> dict:
     """Write every product into ``staging``.
 
     One pass over the grid (one ``dask.compute``) writes ``dh.zarr`` and, from
@@ -501,18 +451,18 @@ def _write_products(ds, pair, coreg, geoms, params, staging: Path, t0: float, t_
     s = max(coreg.nmad_after, 0.01) if math.isfinite(coreg.nmad_after) else 1.0
     med = coreg.median_after if math.isfinite(coreg.median_after) else 0.0
     half = max(20.0 * s, 20.0)  # +-20 NMAD (>= 20 m): resolution NMAD/1600 with 65536 bins
-    labels = slope_class_labels(params.slope_classes)
+    labels = slope_class_labels(spec.slope_classes)
     groups = ("all", "stable", "unstable") + tuple(f"slope {lab}" for lab in labels)
-    hs = HistogramStats(groups, med - half, med + half, params.hist_bins)
+    hs = HistogramStats(groups, med - half, med + half, spec.hist_bins)
     dh_d = ds["dh"].data
     total = hs.lazy_total(
         partial(_stats_block, hs=hs, nclass=len(labels)),
         dh_d, pair.ref.data.rechunk(dh_d.chunks), ds["stable"].data, ds["slope_class"].data,
     )
     H, W = pair.ref.shape
-    step = max(1, math.ceil(max(H, W) / params.quicklook_size))
+    step = max(1, math.ceil(max(H, W) / output.quicklook_size))
     wanted = [total]
-    if params.figures or params.report:
+    if output.quicklook or output.report:
         wanted += [dh_d[::step, ::step], pair.ref.data[::step, ::step]]
     got: list = []
 
@@ -554,28 +504,28 @@ def _write_products(ds, pair, coreg, geoms, params, staging: Path, t0: float, t_
         "statistics": {k: stats[k] for k in ("all", "stable", "unstable")},
         "slope_classes": {lab: stats[f"slope {lab}"] for lab in labels},
         "stable_terrain": {
-            "exclusion_polygons": params.stable_mask, "n_polygons": len(geoms), "max_slope_deg": params.max_slope_deg,
-            "outliers": f"|dh - {med:.4g}| > {params.coreg_params.nmad_k} x {s:.4g}",
+            "exclusion_polygons": spec.stable_mask, "n_polygons": len(geoms), "max_slope_deg": spec.max_slope_deg,
+            "outliers": f"|dh - {med:.4g}| > {spec.nmad_k} x {s:.4g}",
         },
-        "params": jsonable(asdict(params)),
+        "params": {"compare": spec.model_dump(mode="json"), "output": output.model_dump(mode="json")},
         "histogram": {"lo": hs.lo, "hi": hs.hi, "bins": hs.bins, "median_nmad_resolution_m": (hs.hi - hs.lo) / hs.bins},
         "warnings": warnings,
     }
 
     # ---- exports
     t3 = time.perf_counter()
-    if params.cog:
+    if output.cog:
         from tiledsm.compare.export import cog_from_store
 
         cog_from_store(open_product(staging / "dh.zarr")["dh"], staging / "dh.tif")
         products["dh_tif"] = staging / "dh.tif"
     t_cog = time.perf_counter() - t3
     figures = {}
-    if params.figures or params.report:
+    if output.quicklook or output.report:
         from tiledsm.compare.report import make_figures
 
-        figures = make_figures(got[1], got[2], step, pair, hs, hs.unpack(part), stats, labels, params, geoms)
-        if params.figures:
+        figures = make_figures(got[1], got[2], step, pair, hs, hs.unpack(part), stats, labels, spec, geoms)
+        if output.quicklook:
             for name, png in figures.items():
                 (staging / f"{name}.png").write_bytes(png)
                 products[name] = staging / f"{name}.png"
@@ -586,7 +536,7 @@ def _write_products(ds, pair, coreg, geoms, params, staging: Path, t0: float, t_
     metrics = jsonable(metrics)
     (staging / "metrics.json").write_text(json.dumps(metrics, indent=2))
     products["metrics"] = staging / "metrics.json"
-    if params.report:
+    if output.report:
         from tiledsm.compare.report import write_report
 
         write_report(staging / "report.html", metrics, figures)

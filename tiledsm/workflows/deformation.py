@@ -66,6 +66,7 @@ from typing import Literal, Optional
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
+from tiledsm.compare.recipe import CompareSpec
 from tiledsm.errors import NoOverlapError, TiledsmError
 from tiledsm.orient.spec import OrientSpec
 from tiledsm.recipes import ClusterSpec, GridSpec, MatchSpec, OutputSpec, SynthInput, StrictModel
@@ -154,23 +155,14 @@ class FaultSpec(StrictModel):
     )
 
 
-class CompareSpec(StrictModel):
-    """Comparison stage (see :class:`tiledsm.compare.CompareParams`)."""
+class DeformationCompareSpec(CompareSpec):
+    """``compare:`` of a deformation recipe: the comparison stage's parameters
+    (:class:`tiledsm.compare.recipe.CompareSpec`, what
+    :func:`~tiledsm.compare.compare_dsms` takes) with a smaller chunk and the
+    throw's strips."""
 
-    coreg: str = Field("nuth_kaab", description="co-registration method: 'nuth_kaab' or 'none'")
-    stable_mask: Optional[str] = Field(None, description="GeoJSON of areas excluded from stable terrain (rupture zone)")
-    deramp: bool = False
     chunk: int = Field(512, ge=16, description="chunk side of the comparison grid, cells")
     strip: tuple[float, float] = Field((3.0, 20.0), description="throw strips: inner and outer distance to the fault trace, metres")
-
-    @field_validator("coreg")
-    @classmethod
-    def _known_method(cls, value: str) -> str:
-        from tiledsm.compare.coreg import COREG_METHODS
-
-        if value not in COREG_METHODS:
-            raise ValueError(f"unknown co-registration method {value!r}; known: {sorted(COREG_METHODS)}")
-        return value
 
     @field_validator("strip")
     @classmethod
@@ -208,7 +200,7 @@ class DeformationRecipe(StrictModel):
     fault: Optional[FaultSpec] = None
     grid: GridSpec = GridSpec()
     match: MatchSpec = MatchSpec()
-    compare: CompareSpec = CompareSpec()
+    compare: DeformationCompareSpec = DeformationCompareSpec()
     cluster: ClusterSpec = ClusterSpec()
     output: OutputSpec = OutputSpec()
     orient: Optional[DeformationOrientSpec] = None
@@ -401,7 +393,7 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
     import dask.array as da
 
     from tiledsm.cluster import compute_context, shared_cluster
-    from tiledsm.compare import CompareParams, compare_dsms
+    from tiledsm.compare import CompareOutput, compare_dsms
     from tiledsm.evaluate.deformation import DeformationTruth, score
     from tiledsm.io import open_product
     from tiledsm.plan.core import Limits
@@ -461,10 +453,8 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
         fault = Fault(np.asarray(ev.fault_point) + np.asarray(scene.origin), ev.strike)
     elif recipe.fault is not None:
         fault = _fault_from_trace(recipe.fault, grid.crs)
-    cparams = CompareParams(
-        coreg=recipe.compare.coreg, deramp=recipe.compare.deramp, stable_mask=stable_mask,
-        chunks=recipe.compare.chunk, cog=recipe.output.cog, figures=recipe.output.quicklook,
-    )
+    compare_spec = recipe.compare.model_copy(update={"stable_mask": stable_mask})  # the synthetic event's own mask
+    compare_output = CompareOutput(cog=recipe.output.cog, quicklook=recipe.output.quicklook)
 
     # ---- compute, on one cluster for the three stages
     dsm_metrics = {}
@@ -476,7 +466,8 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
             timings[f"dsm_{name}_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         with compute_context(run_cluster):
-            res = compare_dsms(out / "pre" / "dsm.zarr", out / "post" / "dsm.zarr", out / "compare", cparams)
+            res = compare_dsms(out / "pre" / "dsm.zarr", out / "post" / "dsm.zarr", out / "compare", compare_spec,
+                               compare_output)
         timings["compare_s"] = time.perf_counter() - t0
 
         # ---- metrics: dask reductions and the strips' cells; the grid never comes to this process
