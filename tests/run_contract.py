@@ -39,10 +39,12 @@ def error_line(r: subprocess.CompletedProcess, command: str) -> str:
     return lines[0]
 
 
-def start(cmd: list[str], log: Path) -> subprocess.Popen:
-    """``cmd`` in its own process group, output into ``log``."""
+def start(cmd: list[str], log: Path, env: dict | None = None) -> subprocess.Popen:
+    """``cmd`` in its own process group, output into ``log`` (``env``: added
+    to this process's environment)."""
     with open(log, "w") as f:
-        return subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, start_new_session=True)
+        return subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, start_new_session=True,
+                                env=None if env is None else {**os.environ, **env})
 
 
 def wait_until(p: subprocess.Popen, condition: Callable[[], bool], what: str, log: Path, timeout: float = 180) -> None:
@@ -85,8 +87,12 @@ def refused_while_held(first_cmd: list[str], second_cmd: list[str], out: Path, c
     lock, run ``second_cmd`` into ``out`` too; wait for the first to
     finish. Checks that the second was refused (exit 2, one error line
     naming ``out`` and the other run) while the first still ran, that the
-    first then finished (exit 0) and released the lock; returns the line."""
-    first = start(first_cmd, log)
+    first then finished (exit 0) and released the lock; returns the line.
+    The first waits 20 s once it holds the lock (``HOLD_ENV``): on a loaded
+    machine a small run could otherwise finish before the second starts."""
+    from tiledsm.io.lock import HOLD_ENV
+
+    first = start(first_cmd, log, {HOLD_ENV: "20"})
     try:
         wait_until(first, lambda: (out / ".tiledsm.lock").exists(), "the lock was taken", log)
         second = run(second_cmd, timeout=60)

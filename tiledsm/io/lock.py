@@ -27,6 +27,16 @@ log = logging.getLogger("tiledsm")
 #: name of the lock file inside an output folder
 LOCK_NAME = ".tiledsm.lock"
 
+#: seconds a run waits once it holds the lock, before any work (tests set it
+#: so that a second run surely meets the first one still running)
+HOLD_ENV = "TILEDSM_TEST_LOCK_HOLD_S"
+
+
+def _hold_for_tests() -> None:
+    import time
+
+    time.sleep(float(os.environ.get(HOLD_ENV) or 0))
+
 
 def _pid_alive(pid: int) -> bool:
     """Whether process ``pid`` exists on this host (a zombie counts as alive)."""
@@ -183,6 +193,7 @@ class OutputLock:
                     self._create()
                     self._held = True
                     self._sweep()
+                    _hold_for_tests()
                     return
                 except FileExistsError:
                     pass
