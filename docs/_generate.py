@@ -566,7 +566,7 @@ def gpu_table() -> str:
     gpu = dsm["host"].get("gpu", "GPU")
     rows = []
     for label, match in GPU_ROWS:
-        r = next(x for x in dsm["rows"] if all(x.get(k) == v for k, v in match.items()))
+        r = _pick(dsm["rows"], [match], "dsm_gpu.json")
         rows.append([f"`tiledsm dsm`, synthetic 4096², {label}", f"{r['measurement']['wall_s']:.1f} s wall, "
                      f"{r['mcells_per_s_wall']:.2f} Mcells/s", f"{WHOLE_SCENE_CELLS / r['mcells_per_s_wall'] / 1e6 / 60:.0f} min",
                      "[dsm_gpu.json](results.md#dsm_gpujson)"])

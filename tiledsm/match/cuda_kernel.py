@@ -349,23 +349,17 @@ def _device_inputs(cost, P1, P2, base, nvalid, space):
     :class:`DeviceVolume`'s own (its base and nvalid reused when these are
     the arrays it was made with), or a numpy volume checked by
     :func:`tiledsm.match.sgm.checked_volume` and uploaded."""
-    if not isinstance(cost, DeviceVolume):
-        from tiledsm.match.sgm import checked_volume
+    from tiledsm.match.sgm import check_penalties, checked_layout, checked_volume
 
+    if not isinstance(cost, DeviceVolume):
         host, b, n = checked_volume(cost, P1, P2, base, nvalid)
         return space.upload("vol_in", host), space.upload("base_in", b), space.upload("nvalid_in", n)
     if cost.stream is not None and cost.stream is not space.stream:
         cost.stream.synchronize()  # made by another thread
-    ny, nx, nd = cost.shape
-    if P2 < P1 or P1 < 0:
-        raise ValueError(f"aggregate: need 0 <= P1 <= P2, got P1={P1}, P2={P2}")
     if base is cost.base and nvalid is cost.nvalid and cost.d_base is not None:
-        # nvalid <= nd holds: nd is the volume's maximum
+        check_penalties(P1, P2)  # nvalid <= nd holds: nd is its maximum
         return cost.data, cost.d_base, cost.d_nvalid
-    b = np.zeros((ny, nx), np.int64) if base is None else np.ascontiguousarray(base, np.int64)
-    n = np.full((ny, nx), nd, np.int64) if nvalid is None else np.clip(np.asarray(nvalid, np.int64), 0, nd)
-    if b.shape != (ny, nx) or n.shape != (ny, nx):
-        raise ValueError(f"aggregate: base and nvalid must be {(ny, nx)}, got {b.shape} and {n.shape}")
+    b, n = checked_layout(cost.shape, P1, P2, base, nvalid)
     return cost.data, space.upload("base_in", b), space.upload("nvalid_in", n)
 
 

@@ -191,23 +191,36 @@ def _fill_invalid(cost, value):
     return out
 
 
-def checked_volume(cost, P1: float, P2: float, base, nvalid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The volume as contiguous float32, ``base`` as int64 (zeros when
-    ``None``) and ``nvalid`` as int64 clipped to ``0..nd`` (``nd`` when
-    ``None``), after checking shapes and penalties."""
-    cost = np.asarray(cost)
-    if cost.ndim != 3 or min(cost.shape) < 1:
-        raise ValueError(f"aggregate: cost volume must be (ny, nx, nd) and non-empty, got {cost.shape}")
+def check_penalties(P1: float, P2: float) -> None:
+    """Raise ``ValueError`` unless ``0 <= P1 <= P2``."""
     if P2 < P1 or P1 < 0:
         raise ValueError(f"aggregate: need 0 <= P1 <= P2, got P1={P1}, P2={P2}")
-    ny, nx, nd = cost.shape
+
+
+def checked_layout(shape: tuple[int, int, int], P1: float, P2: float, base, nvalid) -> tuple[np.ndarray, np.ndarray]:
+    """``base`` as int64 (zeros when ``None``) and ``nvalid`` as int64
+    clipped to ``0..nd`` (``nd`` when ``None``) of a ``(ny, nx, nd)``
+    volume, after checking their shapes and the penalties (a volume kept
+    on a GPU is checked by its shape alone)."""
+    check_penalties(P1, P2)
+    ny, nx, nd = shape
     b = np.zeros((ny, nx), np.int64) if base is None else np.ascontiguousarray(base, np.int64)
     if b.shape != (ny, nx):
         raise ValueError(f"aggregate: base has shape {b.shape}, expected {(ny, nx)}")
     n = np.full((ny, nx), nd, np.int64) if nvalid is None else np.clip(np.asarray(nvalid, np.int64), 0, nd)
     if n.shape != (ny, nx):
         raise ValueError(f"aggregate: nvalid has shape {n.shape}, expected {(ny, nx)}")
-    return np.ascontiguousarray(cost, np.float32), b, np.ascontiguousarray(n)
+    return b, np.ascontiguousarray(n)
+
+
+def checked_volume(cost, P1: float, P2: float, base, nvalid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The volume as contiguous float32 and :func:`checked_layout`'s
+    ``base`` and ``nvalid``, after checking the volume's shape."""
+    cost = np.asarray(cost)
+    if cost.ndim != 3 or min(cost.shape) < 1:
+        raise ValueError(f"aggregate: cost volume must be (ny, nx, nd) and non-empty, got {cost.shape}")
+    b, n = checked_layout(cost.shape, P1, P2, base, nvalid)
+    return np.ascontiguousarray(cost, np.float32), b, n
 
 
 def aggregate(
