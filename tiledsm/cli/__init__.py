@@ -46,6 +46,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from tiledsm.allocator import return_freed_memory
+
+    # each phase of a command frees what it allocated: give it back, so that phases do not add up
+    return_freed_memory()
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
