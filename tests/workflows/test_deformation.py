@@ -161,9 +161,9 @@ def test_non_overlapping_pairs_are_refused_before_any_product(tmp_path):
 
 
 def test_fault_trace_from_lonlat_points_right_is_east_when_going_north():
-    from tiledsm.workflows.deformation import FaultSpec, _fault_from_trace
+    from tiledsm.workflows.deformation import FaultSpec, fault_from_trace
 
-    f = _fault_from_trace(FaultSpec(trace=[(5.2, 44.19), (5.2, 44.21)]), "EPSG:32631")
+    f = fault_from_trace(FaultSpec(trace=[(5.2, 44.19), (5.2, 44.21)]), "EPSG:32631")
     assert f.normal[0] > 0.99  # right of a north-going trace is east
     with pytest.raises(TiledsmError, match="are the same"):
-        _fault_from_trace(FaultSpec(trace=[(5.2, 44.2), (5.2, 44.2)]), "EPSG:32631")
+        fault_from_trace(FaultSpec(trace=[(5.2, 44.2), (5.2, 44.2)]), "EPSG:32631")

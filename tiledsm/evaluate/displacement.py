@@ -83,7 +83,9 @@ class FieldGrid:
 
 
 def scene_truth(scene) -> DisplacementTruth:
-    """The truth of a :class:`tiledsm.synth.SceneInfo` made with an event."""
+    """The truth of a synthetic scene made with an event
+    (:class:`tiledsm.synth.SceneInfo`, or one reopened by
+    :func:`tiledsm.evaluate.scenes.open_scene`)."""
     ev = scene.event
     return DisplacementTruth(Path(scene.out_dir), {n: Path(ev[k]) for n, k in EVENT_RASTERS.items()},
                              ev["params"], tuple(scene.origin))
@@ -98,21 +100,14 @@ def open_truth(path: str | Path, name: str = "--truth") -> DisplacementTruth:
     InputFileError
         Missing, or neither kind of truth (``name``: how the user gave it).
     """
-    from tiledsm.synth.event import EventParams
+    from tiledsm.evaluate.scenes import is_scene, open_scene
 
     path = Path(path)
     if not path.exists():
         raise InputFileError(f"{path}: {name}: no such file or folder")
     folder = path.parent if path.name == "scene.json" else path
-    if (folder / "scene.json").is_file():
-        doc = json.loads((folder / "scene.json").read_text())
-        if "event" not in doc:
-            raise InputFileError(f"{folder}: {name}: a synthetic scene without an event: it holds no "
-                                 "displacement to score against")
-        ev = doc["event"]
-        params = EventParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in ev["params"].items()})
-        return DisplacementTruth(folder, {n: folder / ev[k] for n, k in EVENT_RASTERS.items()}, params,
-                                 tuple(doc["origin_en"]))
+    if is_scene(folder):
+        return scene_truth(open_scene(folder, name, event=True))
     rasters = {n: folder / f"{n}.tif" for n in COMPONENTS if (folder / f"{n}.tif").is_file()}
     if not folder.is_dir() or not {"dE", "dN"} <= set(rasters):
         raise InputFileError(f"{path}: {name}: neither a synthetic event scene (scene.json) nor a folder with "
