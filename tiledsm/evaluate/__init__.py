@@ -33,7 +33,7 @@ SCORERS: dict[str, str] = {
     "dsm": "tiledsm.evaluate.dsm:score",
     "displace": "tiledsm.evaluate.displacement:score",
     "deformation": "tiledsm.evaluate.deformation:score",
-    "sr_dsm": "tiledsm.evaluate.sr_dsm:score_run",
+    "sr_dsm": "tiledsm.evaluate.sr_dsm:score",
 }
 
 #: the file :func:`evaluate_run` writes into the run folder
