@@ -38,7 +38,7 @@ import numpy as np
 from tiledsm.errors import InputFileError, NoOverlapError
 
 __all__ = ["COMPONENTS", "DisplacementTruth", "FieldGrid", "open_truth", "scene_truth", "truth_on_field",
-           "score_fields", "score", "write_truth_cogs", "write_error_quicklooks"]
+           "score_fields", "score", "write_truth_cogs", "write_error_quicklooks", "write_profiles_with_truth"]
 
 #: the components a displacement field may hold
 COMPONENTS = ("dE", "dN", "dU")
@@ -296,6 +296,15 @@ def write_error_quicklooks(fields: dict, truth: dict, grid: FieldGrid, folder: P
                       title=f"{n} - truth (m)") for n, t in truth.items()]
 
 
+def write_profiles_with_truth(fault_doc: dict, truth_profiles: dict, folder: Path) -> Path:
+    """``profiles.png``: the run's profiles across the fault (its fault
+    section: ``profiles``, ``offsets``) with the truth's (``truth_<name>``)."""
+    from tiledsm.displace.figures import profile_figure
+
+    return profile_figure({**fault_doc["profiles"], **truth_profiles}, fault_doc["offsets"], folder / "profiles.png",
+                          title="across the fault trace, with the truth")
+
+
 def _stable_mask_of(run_dir: Path, recipe: dict) -> str | None:
     """The stable-mask polygons the run's frame was fitted on (a deformation
     run on a synthetic event writes its own into ``scene/``)."""
@@ -326,7 +335,8 @@ def score(run_dir: Path, truth: str | Path | None = None) -> dict:
     Returns the :func:`score_fields` document with ``truth`` (where it came
     from) and ``products`` (the field scored); writes the truth on the
     field grid as ``true_dE.tif`` ... and the error maps ``error_dE.png`` ...
-    into ``evaluation/``.
+    into ``evaluation/`` and, with the run's offsets across a fault,
+    ``profiles.png`` (its profiles with the truth's).
 
     Raises
     ------
@@ -372,5 +382,8 @@ def score(run_dir: Path, truth: str | Path | None = None) -> dict:
     (run_dir / "evaluation").mkdir(exist_ok=True)
     written = [*write_truth_cogs(truth_f, grid, run_dir / "evaluation"),
                *write_error_quicklooks(fields, truth_f, grid, run_dir / "evaluation")]
+    fault_doc = section.get("fault")
+    if fault_doc is not None and "profiles" in doc:
+        written.append(write_profiles_with_truth(fault_doc, doc["profiles"], run_dir / "evaluation"))
     return {"truth": str(known.source), "field": str(store.relative_to(run_dir)),
             "stable_mask": mask, **doc, "products": [str(p.relative_to(run_dir)) for p in written]}

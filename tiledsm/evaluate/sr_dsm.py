@@ -211,18 +211,19 @@ def truth_of(run_dir: Path, recipe, truth: str | Path | None) -> SRDSMTruth:
     return SRDSMTruth(reference=str(truth))
 
 
-def with_tables(metrics: dict, tables: dict, reference: str | None = None) -> dict:
-    """A run's ``metrics.json`` with the rows of :func:`dsm_tables` beside
-    its own (``hr``, ``methods``; ``common``, ``table_step``, ``regions``):
-    what :func:`tiledsm.workflows.sr_scores.markdown_report` renders."""
+def with_tables(metrics: dict, scores: dict, reference: str | None = None) -> dict:
+    """A run's ``metrics.json`` with its evaluation's rows (:func:`score`:
+    ``dsms``, ``common``, ``table_step``, ``regions``) beside its own
+    (``hr``, ``methods``): what :func:`tiledsm.workflows.sr_scores.markdown_report`
+    renders."""
     import copy
 
     doc = copy.deepcopy(metrics)
-    rows = tables["scores"]
+    rows = scores["dsms"]
     doc["hr"].update(rows.get("hr", {}))
     for name, row in doc["methods"].items():
         row.update(rows.get(name, {}))
-    doc.update({k: tables[k] for k in ("common", "table_step", "regions") if k in tables})
+    doc.update({k: scores[k] for k in ("common", "table_step", "regions") if k in scores})
     if reference is not None:
         doc["reference"] = reference
     return doc
@@ -272,9 +273,11 @@ def score(run_dir: Path, truth: str | Path | None = None) -> dict:
         if truth is None:
             raise
         raise type(exc)(f"--truth: {exc}") from None
+    source = Path(known.truth).parent if known.truth else known.reference
+    doc = {"truth": None if source is None else str(source), "dsms": tables["scores"],
+           **{k: v for k, v in tables.items() if k != "scores"}}
     metrics = json.loads((run_dir / "metrics.json").read_text())
     with atomic_path(folder / "report.md") as tmp:
-        Path(tmp).write_text(markdown_report(with_tables(metrics, tables, known.reference)))
-    source = Path(known.truth).parent if known.truth else known.reference
-    return {"truth": None if source is None else str(source), "dsms": tables["scores"],
-            **{k: v for k, v in tables.items() if k != "scores"}, "products": [str(p.relative_to(run_dir)) for p in (folder / "report.md", Path(png))]}
+        Path(tmp).write_text(markdown_report(with_tables(metrics, doc, known.reference)))
+    doc["products"] = [str(p.relative_to(run_dir)) for p in (folder / "report.md", Path(png))]
+    return doc

@@ -505,7 +505,7 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
         with shared_cluster(cluster) as run_cluster:
             metrics["displacement"] = run_displacement(
                 recipe.displacement, out, pre_images=pre_in[0], post_images=post_in[0], stable_mask=stable_mask,
-                fault=fault, scene=scene, cluster=run_cluster, cog=recipe.output.cog,
+                fault=fault, cluster=run_cluster, cog=recipe.output.cog,
                 quicklook=recipe.output.quicklook)
         timings["displacement_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
