@@ -62,6 +62,15 @@ def _evaluate(capsys, *args) -> tuple[int, list[str]]:
     return rc, capsys.readouterr().err.strip().splitlines()
 
 
+def _scores(capsys, run_dir, *args) -> dict:
+    """``tiledsm evaluate RUN_DIR ARGS``, which succeeds: its ``evaluation.json``."""
+    rc, err = _evaluate(capsys, run_dir, *args)
+    assert rc == 0, err
+    doc = json.loads((run_dir / "evaluation.json").read_text())
+    assert doc["run"] == str(run_dir)
+    return doc
+
+
 def _refused(capsys, run_dir, *args) -> str:
     """The one line of a refused evaluation (exit 2, nothing written)."""
     (run_dir / "evaluation.json").unlink(missing_ok=True)
@@ -71,22 +80,25 @@ def _refused(capsys, run_dir, *args) -> str:
     return err[0]
 
 
+def _run(tmp, doc: dict, *options: str):
+    """``tiledsm run`` of the recipe ``doc`` into ``tmp/run``: ``(tmp, run folder)``."""
+    recipe = tmp / f"{doc['pipeline']}.yaml"
+    recipe.write_text(yaml.safe_dump(doc))
+    assert main(["run", str(recipe), "--out", str(tmp / "run"), *options]) == 0
+    return tmp, tmp / "run"
+
+
 # --------------------------------------------------------------------------- deformation
 @pytest.fixture(scope="module")
 def deformation_run(tmp_path_factory):
     """A finished 128 px synthetic event run (no co-registration, with a displacement)."""
-    tmp = tmp_path_factory.mktemp("evaluate_deformation")
-    recipe = tmp / "deformation.yaml"
-    recipe.write_text(yaml.safe_dump({
+    return _run(tmp_path_factory.mktemp("evaluate_deformation"), {
         "pipeline": "deformation",
         "input": {"synth": {"size": 128, "gsd": 0.5, "bh": 0.4, "seed": 2, "event": True, "still": "left"}},
         "grid": {"chunk": 64},
         "compare": {"coreg": "none", "chunk": 64, "strip": list(STRIP)},
         "displacement": {"window": 32, "step": 8},
-    }))
-    out = tmp / "run"
-    assert main(["run", str(recipe), "--out", str(out), *RUN]) == 0
-    return tmp, out
+    }, *RUN)
 
 
 def _event_distance(scene, x, y) -> np.ndarray:
@@ -108,9 +120,7 @@ def test_deformation_run_scored_against_its_scene(deformation_run, capsys):
     metrics = json.loads((out / "metrics.json").read_text())
     assert "truth" not in metrics and "truth" not in metrics["displacement"]  # the run grades nothing
     assert not list((out / "scene").glob("true_*.tif"))
-    rc, _ = _evaluate(capsys, out)
-    assert rc == 0
-    doc = json.loads((out / "evaluation.json").read_text())
+    doc = _scores(capsys, out)
     assert doc["pipeline"] == "deformation" and doc["scores"]["truth"] == str(out / "scene")
     got = doc["scores"]["dh"]
 
@@ -143,9 +153,7 @@ def test_deformation_run_scored_against_its_scene(deformation_run, capsys):
 def test_deformation_run_scored_against_a_dh_raster(deformation_run, capsys):
     _, out = deformation_run
     given = out / "scene" / "dh.tif"
-    rc, _ = _evaluate(capsys, out, "--truth", given)
-    assert rc == 0
-    scores = json.loads((out / "evaluation.json").read_text())["scores"]
+    scores = _scores(capsys, out, "--truth", given)["scores"]
     assert scores["truth"] == str(given) and "not_scored" in scores["displacement"]
     dh, truth = _read(out / "compare" / "dh.tif"), _read(given)
     sel = np.isfinite(dh) & np.isfinite(truth)
@@ -182,18 +190,13 @@ def test_deformation_evaluations_refused(deformation_run, capsys, tmp_path):
 @pytest.fixture(scope="module")
 def sr_run(tmp_path_factory):
     """A finished 128 px synthetic sr_dsm run: DSM upscale and bicubic SR."""
-    tmp = tmp_path_factory.mktemp("evaluate_sr_dsm")
-    recipe = tmp / "sr_dsm.yaml"
-    recipe.write_text(yaml.safe_dump({
+    return _run(tmp_path_factory.mktemp("evaluate_sr_dsm"), {
         "pipeline": "sr_dsm",
         "input": {"synth": {"size": 128, "gsd": 0.5, "bh": 0.4, "seed": 1}},
         "sr": {"models": ["dsm_upscale", "bicubic"]},
         "grid": {"chunk": 64},
         "output": {"cog": True, "quicklook": False},
-    }))
-    out = tmp / "run"
-    assert main(["run", str(recipe), "--out", str(out), "--scheduler", "synchronous", "--no-progress"]) == 0
-    return tmp, out
+    }, "--scheduler", "synchronous", "--no-progress")
 
 
 def _table(got: dict, common: dict, heights: dict, ref: np.ndarray, mask: np.ndarray, what: str) -> None:
@@ -218,9 +221,7 @@ def test_sr_dsm_run_scored_against_its_scene(sr_run, capsys):
     assert 20 < metrics["methods"]["bicubic"]["image"]["psnr_db"] < 60  # the run still measures its images
     own = (out / "report.md").read_text()
     assert "**Table 1.**" in own and "**Table 2.**" not in own and "`tiledsm evaluate`" in own
-    rc, _ = _evaluate(capsys, out)
-    assert rc == 0
-    scores = json.loads((out / "evaluation.json").read_text())["scores"]
+    scores = _scores(capsys, out)["scores"]
     assert scores["truth"] == str(out / "scene") and scores["table_step"] == 1
 
     hr = _read(out / "hr" / "dsm.tif")
@@ -246,9 +247,7 @@ def test_sr_dsm_run_scored_against_its_scene(sr_run, capsys):
 def test_sr_dsm_run_scored_against_a_reference_dsm(sr_run, capsys):
     _, out = sr_run
     given = out / "scene" / "truth_dsm.tif"
-    rc, _ = _evaluate(capsys, out, "--truth", given)
-    assert rc == 0
-    scores = json.loads((out / "evaluation.json").read_text())["scores"]
+    scores = _scores(capsys, out, "--truth", given)["scores"]
     assert scores["truth"] == str(given) and "regions" not in scores
     hr, truth = _read(out / "hr" / "dsm.tif"), _read(given)
     methods = {"dsm_upscale": _read(out / "dsm_upscale" / "dsm.tif"), "bicubic": _read(out / "bicubic" / "dsm.tif")}
