@@ -423,8 +423,10 @@ def _rows_table(rows: list[dict]) -> str | None:
 #: where each results file comes from (script or recipe), when the file does not say
 PRODUCERS = {
     "demo.json": "`tiledsm run recipes/demo.yaml --out runs/demo` (`make demo`), its `metrics.json`",
-    "sr_dsm_synthetic.json": "`tiledsm run recipes/experiments/sr_dsm.yaml --out runs/sr_dsm`, its `metrics.json`",
-    "sr_dsm_s2p.json": "`tiledsm run recipes/experiments/sr_dsm_s2p.yaml --out runs/sr_dsm_s2p`, its `metrics.json`",
+    "sr_dsm_synthetic.json": "`tiledsm run recipes/experiments/sr_dsm.yaml --out runs/sr_dsm`, its `metrics.json` "
+    "(written when the run still held its DSM tables; now `tiledsm evaluate runs/sr_dsm`, its `evaluation.json`)",
+    "sr_dsm_s2p.json": "`tiledsm run recipes/experiments/sr_dsm_s2p.yaml --out runs/sr_dsm_s2p`, its `metrics.json` "
+    "(written when the run still held its DSM tables; now `tiledsm evaluate runs/sr_dsm_s2p`, its `evaluation.json`)",
 }
 
 

@@ -37,7 +37,8 @@ def _read(path):
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
-    """The workflow on a 192 px synthetic scene, every method, synchronous."""
+    """The workflow on a 192 px synthetic scene, every method, synchronous,
+    then scored by ``tiledsm evaluate``."""
     tmp = tmp_path_factory.mktemp("sr_dsm")
     recipe = load_recipe(_write_recipe(
         tmp / "sr_dsm.yaml",
@@ -48,7 +49,12 @@ def run(tmp_path_factory):
     ))
     out = tmp / "run"
     metrics = run_recipe(recipe, out, SYNC)
-    return out, metrics
+    # the DSM tables are the evaluation's (tiledsm evaluate), beside the run's own rows
+    from tiledsm.cli import main
+    from tiledsm.evaluate.sr_dsm import with_tables
+
+    assert main(["evaluate", str(out)]) == 0
+    return out, with_tables(metrics, json.loads((out / "evaluation.json").read_text())["scores"])
 
 
 def test_every_method_has_its_rows_and_files(run):
@@ -56,7 +62,8 @@ def test_every_method_has_its_rows_and_files(run):
     assert list(metrics["methods"]) == list(METHODS)
     assert json.loads((out / "metrics.json").read_text())["methods"].keys() == metrics["methods"].keys()
     assert (out / "recipe.resolved.yaml").exists()
-    report = (out / "report.md").read_text()
+    assert "**Table 2.**" not in (out / "report.md").read_text()  # the run's own report: Table 1
+    report = (out / "evaluation" / "report.md").read_text()
     table1, table2 = report.split("**Table 2.**")[0], report.split("**Table 2.**")[1].split("**Table 3.**")[0]
     for label in ("Bicubic", "SRCNN", "VDSR", "SRMD"):
         assert f"| {label} |" in table1 and f"| {label} |" in table2
@@ -78,14 +85,14 @@ def test_every_method_has_its_rows_and_files(run):
         assert table["common"]["count"] > 100, region
         assert set(table["scores"]) == {"hr", *METHODS}
     assert "**Table 4.** Four-region breakdown" in report
-    assert (out / "blunders.png").stat().st_size > 10_000
+    assert (out / "evaluation" / "blunders.png").stat().st_size > 10_000
 
 
 def test_tables_are_scored_on_common_cells(run):
     """Every row of a table is scored on the same cells, no more than any
     row's own valid cells; the report says how many."""
     out, metrics = run
-    report = (out / "report.md").read_text()
+    report = (out / "evaluation" / "report.md").read_text()
     rows = {"vs_hr": metrics["methods"], "vs_truth_visible": {"hr": metrics["hr"], **metrics["methods"]}}
     for key, table in rows.items():
         common = metrics["common"][key]

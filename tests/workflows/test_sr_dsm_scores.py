@@ -141,6 +141,19 @@ def test_tables_score_on_their_common_cells_and_say_so():
     assert "| Bicubic | 0.100 |" in table3 and "94.4 |" in table3  # own completeness 17/18
 
 
+def test_a_runs_own_report_has_table_1_and_says_where_the_dsm_tables_are():
+    """A run's ``report.md`` (no DSM rows: ``tiledsm evaluate`` scores them)."""
+    truth, a, _ = _case()
+    metrics = _metrics(truth, {"bicubic": a}, {})
+    metrics["methods"]["bicubic"] = {"image": {"psnr_db": 31.5, "ssim": 0.91}, "dsm": {}}
+    metrics["hr"] = {"dsm": {}}
+    del metrics["common"]
+    report = markdown_report(metrics)
+    assert "| Bicubic | 31.50 | 0.9100 |" in report
+    assert "**Table 2.**" not in report and "**Table 3.**" not in report
+    assert "`tiledsm evaluate` on this run folder writes them into `evaluation/report.md`" in report
+
+
 def test_report_without_common_block_still_renders():
     """Metrics written before common-cell scoring (no ``common``) still render."""
     truth, a, b = _case()

@@ -26,15 +26,14 @@ from typing import Callable
 
 from tiledsm.errors import InputFileError
 
-__all__ = ["SCORERS", "EVALUATION", "pipeline_of", "scorer_of", "evaluate_run"]
+__all__ = ["SCORERS", "EVALUATION", "pipeline_of", "resolved_recipe", "scorer_of", "evaluate_run"]
 
 #: pipeline name -> its scorer, "module:function" (imported when used)
 SCORERS: dict[str, str] = {
     "dsm": "tiledsm.evaluate.dsm:score",
     "displace": "tiledsm.evaluate.displacement:score",
-    # a deformation run's displacement/ folder; its dh truth scores (tiledsm.evaluate.deformation) and sr_dsm's
-    # tables (tiledsm.evaluate.sr_dsm) are computed by the runners into metrics.json
-    "deformation": "tiledsm.evaluate.displacement:score",
+    "deformation": "tiledsm.evaluate.deformation:score",
+    "sr_dsm": "tiledsm.evaluate.sr_dsm:score",
 }
 
 #: the file :func:`evaluate_run` writes into the run folder
@@ -65,6 +64,27 @@ def pipeline_of(run_dir: str | Path) -> str:
     if not isinstance(name, str):
         raise InputFileError(f"{resolved}: RUN_DIR: names no pipeline")
     return name
+
+
+def resolved_recipe(run_dir: str | Path, model):
+    """The recipe a finished run folder ran (its ``recipe.resolved.yaml``),
+    read through ``model`` (a field added since that run takes its default).
+
+    Raises
+    ------
+    InputFileError
+        The file does not fit ``model`` (a folder of another pipeline or
+        version).
+    """
+    import yaml
+    from pydantic import ValidationError
+
+    resolved = Path(run_dir) / "recipe.resolved.yaml"
+    try:
+        return model.model_validate(yaml.safe_load(resolved.read_text()))
+    except (yaml.YAMLError, ValidationError) as exc:
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise InputFileError(f"{resolved}: RUN_DIR: not a recipe this version reads ({first})") from None
 
 
 def scorer_of(pipeline: str, run_dir: str | Path = "RUN_DIR") -> Callable[..., dict]:

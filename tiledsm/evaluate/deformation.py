@@ -1,13 +1,21 @@
 """Scores of a finished deformation run against a truth, chunk by chunk.
 
-:func:`score` reads a run folder of ``pipeline: deformation``
-(``compare/dh.zarr``, its ``compare/metrics.json``) and a
-:class:`DeformationTruth` -- the synthetic event scene the run was made
-from, or a truth ``dh`` raster -- and returns the ``truth`` section of the
-run's ``metrics.json``. Every grid-sized quantity (truth ``dh`` on the run's
-grid, masks, errors) stays a dask array: statistics are histogram
-reductions (:class:`tiledsm.compare.stats.HistogramStats`, medians to a
-bin of ``range / 2**18``), the throw reads only the cells of its strips
+:func:`score` (the ``deformation`` scorer of :data:`tiledsm.evaluate.SCORERS`,
+``tiledsm evaluate RUN_DIR``) rebuilds the truth of a run folder of
+``pipeline: deformation`` from the folder alone (:func:`truth_of`): the
+synthetic event scene the run made (``scene/``), with the stable mask the
+run fitted its co-registration on (``compare.stable_mask`` of its
+``recipe.resolved.yaml``, else the ``scene/stable_mask.geojson`` it wrote)
+and the event's fault; for real inputs the recipe's ``input.truth_dh`` and
+``input.truth_mask`` and ``fault.trace``; or ``--truth`` (a synthetic event
+scene or a ``dh`` raster). It scores ``compare/dh.zarr`` (:func:`score_dh`)
+and, when the run has one, the ``displacement/`` field
+(:func:`tiledsm.evaluate.displacement.score`).
+
+Every grid-sized quantity (truth ``dh`` on the run's grid, masks, errors)
+stays a dask array: statistics are histogram reductions
+(:class:`tiledsm.compare.stats.HistogramStats`, medians to a bin of
+``range / 2**18``), the throw reads only the cells of its strips
 (:func:`tiledsm.workflows.fault.strips_lazy`).
 
 Conventions: metres; ``dh = post - pre``; the frame of the synthetic truth
@@ -29,9 +37,10 @@ import numpy as np
 import xarray as xr
 
 from tiledsm.compare.stats import HistogramStats
+from tiledsm.errors import InputFileError, TiledsmError
 from tiledsm.workflows.fault import Fault, strips_lazy, throw_of_strips
 
-__all__ = ["DeformationTruth", "score", "error_stats_lazy"]
+__all__ = ["DeformationTruth", "truth_of", "score", "score_dh", "error_stats_lazy"]
 
 #: histogram bins of the medians, NMAD and 95th percentile
 BINS = 2**18
@@ -43,9 +52,10 @@ class DeformationTruth:
 
     Attributes
     ----------
-    scene : SceneInfo or None
+    scene : SceneInfo, SyntheticScene or None
         The synthetic event scene (:func:`tiledsm.synth.make_scene` with
-        ``event=True``) whose truth rasters are read.
+        ``event=True``, or reopened by :func:`tiledsm.evaluate.scenes.open_scene`)
+        whose truth rasters are read.
     dh, mask : str or None
         Without a scene: a truth ``dh`` raster (metres, ``post - pre``) and
         optionally a uint8 raster, 1 where it is evaluated.
@@ -171,8 +181,8 @@ def _throw(dh: xr.DataArray, truth: da.Array, fault: Fault, strip, valid: da.Arr
     return {"measured": measured, "truth": true}
 
 
-def score(run_dir: Path, truth: DeformationTruth) -> dict:
-    """The ``truth`` section of a deformation run's ``metrics.json``.
+def score_dh(run_dir: Path, truth: DeformationTruth) -> dict:
+    """Errors of a deformation run's ``dh`` (``compare/dh.zarr``) against ``truth``.
 
     Synthetic scene: ``frame``, ``coregistration_expected``,
     ``coregistration_error`` (found minus expected), ``dh_error_visible_ground``,
@@ -224,3 +234,126 @@ def score(run_dir: Path, truth: DeformationTruth) -> dict:
         out["throw"] = {"recovered": mt["throw"], "truth": tt["throw"], "error": mt["throw"] - tt["throw"],
                         "nominal": float(ev["params"].throw), "cells": [mt["n_left"], mt["n_right"]]}
     return out
+
+
+# --------------------------------------------------------------------------- the truth of a run folder
+def _event_fault(scene) -> Fault:
+    """The trace of a synthetic event (as the run measured its throw across it)."""
+    ev = scene.event["params"]
+    return Fault(np.asarray(ev.fault_point) + np.asarray(scene.origin), ev.strike)
+
+
+def _stable_mask_of(run_dir: Path, recipe) -> str | None:
+    """The polygons the run fitted its co-registration outside of: the
+    recipe's, else the ones it wrote from the known event."""
+    auto = run_dir / "scene" / "stable_mask.geojson"
+    return recipe.compare.stable_mask or (str(auto) if auto.is_file() else None)
+
+
+def _fault_of(run_dir: Path, recipe, crs) -> Fault | None:
+    """The trace of a run scored against a ``dh`` raster: the recipe's
+    ``fault.trace``, else the event of the scene the run made."""
+    from tiledsm.evaluate.scenes import is_scene, open_scene
+    from tiledsm.workflows.deformation import fault_from_trace
+
+    if recipe.fault is not None:
+        return fault_from_trace(recipe.fault, crs)
+    if is_scene(run_dir / "scene"):
+        return _event_fault(open_scene(run_dir / "scene", "RUN_DIR/scene", event=True))
+    return None
+
+
+def truth_of(run_dir: Path, recipe, truth: str | Path | None, crs) -> DeformationTruth:
+    """The :class:`DeformationTruth` of a finished run folder (module notes).
+
+    Parameters
+    ----------
+    recipe : DeformationRecipe
+        The run's resolved recipe.
+    truth : path or None
+        ``--truth``: a synthetic event scene (folder or ``scene.json``) or a
+        ``dh`` raster (metres, post - pre); default: the run's ``scene/``,
+        else its ``input.truth_dh``.
+    crs
+        CRS of the run's ``dh`` grid (the recipe's fault trace is projected
+        into it).
+
+    Raises
+    ------
+    InputFileError
+        No truth given and none in the run, a truth that does not exist, or
+        a folder that is no synthetic event scene.
+    """
+    from tiledsm.evaluate.scenes import is_scene, open_scene
+
+    strip = tuple(recipe.compare.strip)
+    name = "--truth" if truth is not None else "RUN_DIR/scene"
+    if truth is None:
+        if is_scene(run_dir / "scene"):
+            truth = run_dir / "scene"
+        elif recipe.input.truth_dh:
+            return DeformationTruth(dh=recipe.input.truth_dh, mask=recipe.input.truth_mask,
+                                    fault=_fault_of(run_dir, recipe, crs), strip=strip)
+        else:
+            raise InputFileError(f"{run_dir}: the run made no synthetic scene (scene/) and its recipe has no "
+                                 "input.truth_dh: give --truth (a synthetic event scene or a dh raster)")
+    truth = Path(truth)
+    if not truth.exists():
+        raise InputFileError(f"{truth}: --truth: no such file or folder")
+    if is_scene(truth):
+        scene = open_scene(truth, name, event=True)
+        return DeformationTruth(scene=scene, stable_mask=_stable_mask_of(run_dir, recipe), fault=_event_fault(scene),
+                                strip=strip)
+    if truth.is_dir():
+        raise InputFileError(f"{truth}: --truth: neither a synthetic event scene (scene.json) nor a dh raster")
+    return DeformationTruth(dh=str(truth), fault=_fault_of(run_dir, recipe, crs), strip=strip)
+
+
+def score(run_dir: Path, truth: str | Path | None = None) -> dict:
+    """Score a finished ``deformation`` run folder (module notes).
+
+    Returns
+    -------
+    dict
+        ``truth`` (where it came from), ``stable_mask``, ``dh``
+        (:func:`score_dh`) and, for a run with a ``displacement/`` field and
+        a synthetic event truth, ``displacement``
+        (:func:`tiledsm.evaluate.displacement.score`) and its ``products``.
+
+    Raises
+    ------
+    InputFileError
+        The run did not finish (no ``compare/dh.zarr``), or no truth
+        (:func:`truth_of`).
+    NoOverlapError, GridError
+        A truth that covers none of the run's grid (the message names
+        ``--truth``).
+    """
+    from tiledsm.evaluate import resolved_recipe
+    from tiledsm.io import open_product
+    from tiledsm.workflows.deformation import DeformationRecipe
+
+    run_dir = Path(run_dir)
+    recipe = resolved_recipe(run_dir, DeformationRecipe)
+    store = run_dir / "compare" / "dh.zarr"
+    if not store.exists():
+        raise InputFileError(f"{run_dir}: no compare/dh.zarr: the deformation run did not finish (nothing to score)")
+    known = truth_of(run_dir, recipe, truth, open_product(store)["dh"].rio.crs.to_string())
+    source = known.scene.out_dir if known.scene is not None else known.dh
+    doc: dict = {"truth": str(source), "stable_mask": known.stable_mask}
+    try:
+        doc["dh"] = score_dh(run_dir, known)
+    except TiledsmError as exc:  # a given truth that does not fit this run: say it is the truth's fault
+        if truth is None:
+            raise
+        raise type(exc)(f"--truth: {exc}") from None
+    if (run_dir / "displacement" / "displacement.zarr").exists():
+        if known.scene is None:
+            doc["displacement"] = {"not_scored": f"{source}: a dh raster holds no true dE, dN: give a synthetic "
+                                                 "event scene as --truth to score the displacement"}
+        else:
+            from tiledsm.evaluate.displacement import score as score_displacement
+
+            doc["displacement"] = score_displacement(run_dir, known.scene.out_dir)
+            doc["products"] = doc["displacement"].pop("products")
+    return doc

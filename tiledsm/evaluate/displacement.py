@@ -38,7 +38,7 @@ import numpy as np
 from tiledsm.errors import InputFileError, NoOverlapError
 
 __all__ = ["COMPONENTS", "DisplacementTruth", "FieldGrid", "open_truth", "scene_truth", "truth_on_field",
-           "score_fields", "score", "write_truth_cogs", "write_error_quicklooks"]
+           "score_fields", "score", "write_truth_cogs", "write_error_quicklooks", "write_profiles_with_truth"]
 
 #: the components a displacement field may hold
 COMPONENTS = ("dE", "dN", "dU")
@@ -83,7 +83,9 @@ class FieldGrid:
 
 
 def scene_truth(scene) -> DisplacementTruth:
-    """The truth of a :class:`tiledsm.synth.SceneInfo` made with an event."""
+    """The truth of a synthetic scene made with an event
+    (:class:`tiledsm.synth.SceneInfo`, or one reopened by
+    :func:`tiledsm.evaluate.scenes.open_scene`)."""
     ev = scene.event
     return DisplacementTruth(Path(scene.out_dir), {n: Path(ev[k]) for n, k in EVENT_RASTERS.items()},
                              ev["params"], tuple(scene.origin))
@@ -98,21 +100,14 @@ def open_truth(path: str | Path, name: str = "--truth") -> DisplacementTruth:
     InputFileError
         Missing, or neither kind of truth (``name``: how the user gave it).
     """
-    from tiledsm.synth.event import EventParams
+    from tiledsm.evaluate.scenes import is_scene, open_scene
 
     path = Path(path)
     if not path.exists():
         raise InputFileError(f"{path}: {name}: no such file or folder")
     folder = path.parent if path.name == "scene.json" else path
-    if (folder / "scene.json").is_file():
-        doc = json.loads((folder / "scene.json").read_text())
-        if "event" not in doc:
-            raise InputFileError(f"{folder}: {name}: a synthetic scene without an event: it holds no "
-                                 "displacement to score against")
-        ev = doc["event"]
-        params = EventParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in ev["params"].items()})
-        return DisplacementTruth(folder, {n: folder / ev[k] for n, k in EVENT_RASTERS.items()}, params,
-                                 tuple(doc["origin_en"]))
+    if is_scene(folder):
+        return scene_truth(open_scene(folder, name, event=True))
     rasters = {n: folder / f"{n}.tif" for n in COMPONENTS if (folder / f"{n}.tif").is_file()}
     if not folder.is_dir() or not {"dE", "dN"} <= set(rasters):
         raise InputFileError(f"{path}: {name}: neither a synthetic event scene (scene.json) nor a folder with "
@@ -301,6 +296,15 @@ def write_error_quicklooks(fields: dict, truth: dict, grid: FieldGrid, folder: P
                       title=f"{n} - truth (m)") for n, t in truth.items()]
 
 
+def write_profiles_with_truth(fault_doc: dict, truth_profiles: dict, folder: Path) -> Path:
+    """``profiles.png``: the run's profiles across the fault (its fault
+    section: ``profiles``, ``offsets``) with the truth's (``truth_<name>``)."""
+    from tiledsm.displace.figures import profile_figure
+
+    return profile_figure({**fault_doc["profiles"], **truth_profiles}, fault_doc["offsets"], folder / "profiles.png",
+                          title="across the fault trace, with the truth")
+
+
 def _stable_mask_of(run_dir: Path, recipe: dict) -> str | None:
     """The stable-mask polygons the run's frame was fitted on (a deformation
     run on a synthetic event writes its own into ``scene/``)."""
@@ -331,7 +335,8 @@ def score(run_dir: Path, truth: str | Path | None = None) -> dict:
     Returns the :func:`score_fields` document with ``truth`` (where it came
     from) and ``products`` (the field scored); writes the truth on the
     field grid as ``true_dE.tif`` ... and the error maps ``error_dE.png`` ...
-    into ``evaluation/``.
+    into ``evaluation/`` and, with the run's offsets across a fault,
+    ``profiles.png`` (its profiles with the truth's).
 
     Raises
     ------
@@ -377,5 +382,8 @@ def score(run_dir: Path, truth: str | Path | None = None) -> dict:
     (run_dir / "evaluation").mkdir(exist_ok=True)
     written = [*write_truth_cogs(truth_f, grid, run_dir / "evaluation"),
                *write_error_quicklooks(fields, truth_f, grid, run_dir / "evaluation")]
+    fault_doc = section.get("fault")
+    if fault_doc is not None and "profiles" in doc:
+        written.append(write_profiles_with_truth(fault_doc, doc["profiles"], run_dir / "evaluation"))
     return {"truth": str(known.source), "field": str(store.relative_to(run_dir)),
             "stable_mask": mask, **doc, "products": [str(p.relative_to(run_dir)) for p in written]}

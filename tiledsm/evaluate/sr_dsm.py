@@ -1,13 +1,18 @@
 """Scores of a finished ``sr_dsm`` run: the paper's DSM tables.
 
-:func:`score` reads a run folder of ``pipeline: sr_dsm`` (``hr/dsm.zarr``,
-``<method>/dsm.zarr`` or ``dsm_upscale/dsm.tif``) and an :class:`SRDSMTruth`
-(the synthetic scene's truth, visibility and labels, or a reference DSM),
-and returns the DSM tables of ``metrics.json``: every method against the
-HR-pair DSM (``vs_hr``), the HR pair and every method against the truth on
-visible cells (``vs_truth_visible``) or the reference (``vs_reference``),
-each on its common cells (:func:`tiledsm.workflows.sr_scores.compare_on_common`),
-and, with a synthetic truth, the four-region breakdown.
+:func:`score` (the ``sr_dsm`` scorer of :data:`tiledsm.evaluate.SCORERS`,
+``tiledsm evaluate RUN_DIR``) reads a run folder of ``pipeline: sr_dsm``
+(``hr/dsm.zarr``, ``<method>/dsm.zarr`` or ``dsm_upscale/dsm.tif``, the
+methods of its ``recipe.resolved.yaml``) and its truth (:func:`truth_of`:
+the synthetic scene it made, ``scene/``, else its ``input.reference``, or
+``--truth``: a synthetic scene or a reference DSM) and returns the DSM
+tables (:func:`dsm_tables`): every method against the HR-pair DSM
+(``vs_hr``), the HR pair and every method against the truth on visible
+cells (``vs_truth_visible``) or the reference (``vs_reference``), each on
+its common cells (:func:`tiledsm.workflows.sr_scores.compare_on_common`),
+and, with a synthetic truth, the four-region breakdown. It writes
+``evaluation/report.md`` (the run's Table 1 of image quality and these
+tables) and ``evaluation/blunders.png``.
 
 No grid-sized array is held: every DSM, truth and mask is read lazily
 and decimated to at most :data:`MAX_TABLE_CELLS` cells (every ``step``-th
@@ -26,9 +31,11 @@ from typing import Sequence
 import numpy as np
 import xarray as xr
 
+from tiledsm.errors import InputFileError, TiledsmError
 from tiledsm.workflows.sr_scores import RegionRule, compare_by_region, compare_on_common, regions_from_truth
 
-__all__ = ["MAX_TABLE_CELLS", "SRDSMTruth", "table_step", "score", "score_tables", "write_blunder_map"]
+__all__ = ["MAX_TABLE_CELLS", "SRDSMTruth", "table_step", "truth_of", "dsm_tables", "score_tables", "with_tables",
+           "write_blunder_map", "score"]
 
 #: the tables are scored on at most this many cells (a decimated grid beyond):
 #: every cell of the shipped recipes' grids (512², s2p's 739 x 721), and this
@@ -125,7 +132,7 @@ def score_tables(hr: np.ndarray, methods: dict[str, np.ndarray], refs: dict) -> 
     return scores, {key: table["common"] for key, table in tables.items()}
 
 
-def score(run_dir: Path, truth: SRDSMTruth, methods: Sequence[str]) -> dict:
+def dsm_tables(run_dir: Path, truth: SRDSMTruth, methods: Sequence[str]) -> dict:
     """The DSM tables of an ``sr_dsm`` run (module notes).
 
     Returns
@@ -167,3 +174,110 @@ def write_blunder_map(run_dir: Path, truth: SRDSMTruth, methods: Sequence[str], 
     hr = heights["hr"]
     return blunder_map({k: v for k, v in heights.items() if k != "hr"}, hr, np.ones(hr.shape, bool), res, path,
                        "against the HR-pair DSM")
+
+
+# --------------------------------------------------------------------------- a finished run folder
+def truth_of(run_dir: Path, recipe, truth: str | Path | None) -> SRDSMTruth:
+    """The :class:`SRDSMTruth` of a finished run folder.
+
+    ``truth`` (``--truth``): a synthetic scene folder (``scene.json``: its
+    truth DSM, visible-ground mask and classes) or a reference DSM; default:
+    the scene the run made (``scene/``), else the recipe's
+    ``input.reference``, else none (the HR-pair DSM is the only reference).
+
+    Raises
+    ------
+    InputFileError
+        A truth that does not exist, or a folder that is neither a DSM nor
+        a synthetic scene.
+    """
+    from tiledsm.evaluate.scenes import is_scene, open_scene
+
+    if truth is None:
+        if is_scene(run_dir / "scene"):
+            truth = run_dir / "scene"
+        elif recipe.input.reference:
+            return SRDSMTruth(reference=recipe.input.reference)
+        else:
+            return SRDSMTruth()
+    truth = Path(truth)
+    if not truth.exists():
+        raise InputFileError(f"{truth}: --truth: no such file or folder")
+    if is_scene(truth):
+        scene = open_scene(truth)
+        return SRDSMTruth(truth=str(scene.truth_dsm), visible=str(scene.visible_mask), label=str(scene.truth_label))
+    if truth.is_dir() and not (truth / ".zattrs").exists() and not (truth / "zarr.json").exists():
+        raise InputFileError(f"{truth}: --truth: neither a reference DSM nor a synthetic scene folder (no scene.json)")
+    return SRDSMTruth(reference=str(truth))
+
+
+def with_tables(metrics: dict, scores: dict, reference: str | None = None) -> dict:
+    """A run's ``metrics.json`` with its evaluation's rows (:func:`score`:
+    ``dsms``, ``common``, ``table_step``, ``regions``) beside its own
+    (``hr``, ``methods``): what :func:`tiledsm.workflows.sr_scores.markdown_report`
+    renders."""
+    import copy
+
+    doc = copy.deepcopy(metrics)
+    rows = scores["dsms"]
+    doc["hr"].update(rows.get("hr", {}))
+    for name, row in doc["methods"].items():
+        row.update(rows.get(name, {}))
+    doc.update({k: scores[k] for k in ("common", "table_step", "regions") if k in scores})
+    if reference is not None:
+        doc["reference"] = reference
+    return doc
+
+
+def score(run_dir: Path, truth: str | Path | None = None) -> dict:
+    """Score a finished ``sr_dsm`` run folder (module notes).
+
+    Returns
+    -------
+    dict
+        ``truth`` (where it came from; None: the HR-pair DSM only), the
+        :func:`dsm_tables`: ``dsms`` (``dsms[name][table]``, their
+        ``scores``), ``common``, ``table_step``, ``regions``; and ``products``
+        (``evaluation/report.md``, ``evaluation/blunders.png``).
+
+    Raises
+    ------
+    InputFileError
+        A DSM of the run is missing (it did not finish), or a truth that
+        does not exist or is neither kind.
+    NoOverlapError, GridError
+        A given truth that covers none of the run's grid (the message names
+        ``--truth``).
+    """
+    import json
+
+    from tiledsm.evaluate import resolved_recipe
+    from tiledsm.io import atomic_path
+    from tiledsm.workflows.sr_dsm import SRDSMRecipe
+    from tiledsm.workflows.sr_scores import markdown_report
+
+    run_dir = Path(run_dir)
+    recipe = resolved_recipe(run_dir, SRDSMRecipe)
+    methods = list(recipe.sr.models)
+    for path in [run_dir / "hr" / "dsm.zarr", *(method_dsm(run_dir, m) for m in methods), run_dir / "metrics.json"]:
+        if not path.exists():
+            raise InputFileError(f"{run_dir}: no {path.relative_to(run_dir)}: the sr_dsm run did not finish "
+                                 "(nothing to score)")
+    known = truth_of(run_dir, recipe, truth)
+    folder = run_dir / "evaluation"
+    try:
+        tables = dsm_tables(run_dir, known, methods)
+        folder.mkdir(exist_ok=True)
+        png = write_blunder_map(run_dir, known, methods, folder / "blunders.png")
+    except TiledsmError as exc:  # a given truth that does not fit this run: say it is the truth's fault
+        if truth is None:
+            raise
+        raise type(exc)(f"--truth: {exc}") from None
+    source = Path(known.truth).parent if known.truth else known.reference
+    doc = {"truth": None if source is None else str(source), "dsms": tables["scores"],
+           **{k: v for k, v in tables.items() if k != "scores"}}
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    with atomic_path(folder / "report.md") as tmp:
+        Path(tmp).write_text(markdown_report(with_tables(metrics, doc, known.reference)))
+    doc["products"] = [str(p.relative_to(run_dir)) for p in (folder / "report.md", Path(png))]
+    return doc

@@ -12,8 +12,11 @@ run folder ``OUT``:
   (``dh.zarr``, ``dh.tif``, quick-looks, ``report.html``, its
   ``metrics.json``) with ``dh = post_corrected - pre`` (metres);
 - ``metrics.json``: the DSM reports, the co-registration found, stable
-  terrain statistics, the throw measured across the fault trace (when one is
-  known) and, with a known truth, the errors of the recovered ``dh``;
+  terrain statistics, the completeness of ``dh`` and the throw measured
+  across the fault trace (when one is known). The errors against a truth
+  (the synthetic scene, ``input.truth_dh``) are not the run's:
+  ``tiledsm evaluate OUT`` writes them into ``OUT/evaluation.json``
+  (:mod:`tiledsm.evaluate.deformation`);
 - ``scene/`` (synthetic input): the scene of :func:`tiledsm.synth.make_scene`
   and ``stable_mask.geojson`` (the exclusion polygons written from the known
   event);
@@ -40,8 +43,8 @@ relative to the left one). For a synthetic event this is the convention of
 Throw measure: ``median(dh)`` over valid cells at ``strip[0]..strip[1]``
 metres on the right of the trace minus the same on the left (cells closer
 than ``strip[0]`` are left out: the matching window smooths the step there).
-With a truth, the same measure on the truth ``dh`` over the same cells is
-the truth throw, so the error compares like with like.
+``tiledsm evaluate`` takes the same measure on the truth ``dh`` over the
+same cells for the truth throw, so the error compares like with like.
 
 Reference frame of the truth: co-registration aligns the post DSM on the
 terrain declared stable, so ``dh`` is displacement *relative to that
@@ -73,7 +76,7 @@ from tiledsm.recipes import ClusterSpec, GridSpec, MatchSpec, OutputSpec, SynthI
 from tiledsm.workflows.displacement import DisplacementSpec
 from tiledsm.workflows.fault import Fault, event_exclusion_polygons, write_geojson
 
-__all__ = ["DeformationRecipe", "plan_deformation", "run_deformation"]
+__all__ = ["DeformationRecipe", "fault_from_trace", "plan_deformation", "run_deformation"]
 
 log = logging.getLogger("tiledsm.workflows.deformation")
 
@@ -129,7 +132,8 @@ class DeformationInput(StrictModel):
     synth: Optional[EventSynthInput] = None
     pre: Optional[PairInput] = None
     post: Optional[PairInput] = None
-    truth_dh: Optional[str] = Field(None, description="reference dh raster (post - pre, metres) for the metrics")
+    truth_dh: Optional[str] = Field(None, description="reference dh raster (post - pre, metres) that tiledsm "
+                                    "evaluate scores the run against")
     truth_mask: Optional[str] = Field(None, description="uint8 raster, 1 where truth_dh is evaluated")
 
     @model_validator(mode="after")
@@ -248,7 +252,8 @@ def _check_post_sees_grid(images, rpcs, h_range, grid, pre_images) -> None:
         )
 
 
-def _fault_from_trace(spec: FaultSpec, crs: str) -> Fault:
+def fault_from_trace(spec: FaultSpec, crs) -> Fault:
+    """The oriented trace of ``fault.trace`` (WGS84 points) in ``crs`` (metres)."""
     from pyproj import Transformer
 
     (lon0, lat0), (lon1, lat1) = spec.trace
@@ -378,9 +383,9 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
     planned, memory-fitted, resumable) into ``out/pre`` and ``out/post``;
     ``plan`` (:func:`plan_deformation`) carries both epochs' prepared DSMs
     for given pairs, which are then not prepared twice. Completeness and
-    throw are dask reductions; the scores against a truth come from
-    :func:`tiledsm.evaluate.deformation.score`. See the module notes for
-    the products and conventions.
+    throw are dask reductions. The run scores nothing against a truth:
+    ``tiledsm evaluate OUT`` does (:func:`tiledsm.evaluate.deformation.score`).
+    See the module notes for the products and conventions.
 
     Raises
     ------
@@ -394,7 +399,6 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
 
     from tiledsm.cluster import compute_context, shared_cluster
     from tiledsm.compare import CompareOutput, compare_dsms
-    from tiledsm.evaluate.deformation import DeformationTruth, score
     from tiledsm.io import open_product
     from tiledsm.plan.core import Limits
     from tiledsm.workflows.common import write_json
@@ -452,7 +456,7 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
         ev = scene.event["params"]
         fault = Fault(np.asarray(ev.fault_point) + np.asarray(scene.origin), ev.strike)
     elif recipe.fault is not None:
-        fault = _fault_from_trace(recipe.fault, grid.crs)
+        fault = fault_from_trace(recipe.fault, grid.crs)
     compare_spec = recipe.compare.model_copy(update={"stable_mask": stable_mask})  # the synthetic event's own mask
     compare_output = CompareOutput(cog=recipe.output.cog, quicklook=recipe.output.quicklook)
 
@@ -493,13 +497,6 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
                 metrics["fault"] = {**fault.to_dict(), "strip_m": list(strip), "measured": measured}
                 if scene is not None:
                     metrics["fault"]["nominal_throw"] = float(scene.event["params"].throw)
-            truth = None
-            if scene is not None:
-                truth = DeformationTruth(scene=scene, stable_mask=stable_mask, fault=fault, strip=strip)
-            elif inp.truth_dh:
-                truth = DeformationTruth(dh=inp.truth_dh, mask=inp.truth_mask, fault=fault, strip=strip)
-            if truth is not None:
-                metrics["truth"] = score(out, truth)
         timings["metrics_s"] = time.perf_counter() - t0
     if recipe.displacement is not None:
         from tiledsm.workflows.displacement import run_displacement
@@ -508,7 +505,7 @@ def run_deformation(recipe: DeformationRecipe, out: Path, cluster=None, overwrit
         with shared_cluster(cluster) as run_cluster:
             metrics["displacement"] = run_displacement(
                 recipe.displacement, out, pre_images=pre_in[0], post_images=post_in[0], stable_mask=stable_mask,
-                fault=fault, scene=scene, cluster=run_cluster, cog=recipe.output.cog,
+                fault=fault, cluster=run_cluster, cog=recipe.output.cog,
                 quicklook=recipe.output.quicklook)
         timings["displacement_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start

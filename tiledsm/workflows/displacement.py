@@ -1,9 +1,9 @@
 """3D displacement of a deformation run: orthoimages of both epochs,
 their sub-pixel correlation, the frame correction on stable terrain,
-``dU`` read at the displaced position, per-cell uncertainty, offsets across
-the fault and, for a synthetic event, the errors against the truth
-(scored by :mod:`tiledsm.evaluate.displacement`, as ``tiledsm evaluate``
-scores a finished run; kept in ``metrics.json``'s ``truth`` section).
+``dU`` read at the displaced position, per-cell uncertainty and offsets
+across the fault. The errors against a truth are not the run's:
+``tiledsm evaluate OUT`` scores the finished folder
+(:mod:`tiledsm.evaluate.displacement`).
 
 Run by :func:`tiledsm.workflows.deformation.run_deformation` when the
 recipe has a ``displacement:`` section (:class:`DisplacementSpec`), after
@@ -15,9 +15,7 @@ both DSMs and ``dh``. Products (run folder ``OUT``):
   ``sigma_dE``, ``sigma_dN``, ``sigma_dU`` (metres east/north/up, NaN where
   unknown), ``quality`` and ``slope``; the COGs ``dE.tif`` ... ``sigma_dU.tif``;
   ``displacement.png`` (arrows over hillshade, ``dU``) and, with a fault,
-  ``profiles.png``;
-- ``scene/true_dE.tif``, ``true_dN.tif``, ``true_dU.tif`` (synthetic event):
-  the truth on the displacement grid, in the frame of the stable terrain.
+  ``profiles.png``.
 
 Frame: the correlation measures the post ortho against the pre ortho; a
 plane (and optional row stripes) fitted on the stable terrain is removed
@@ -176,7 +174,7 @@ def fault_section(fields: dict, sigmas: dict, varios: dict, fault, distance: np.
     return {"strip_m": list(strip), "offsets": offsets, "profiles": profiles}
 
 
-def run_displacement(spec: DisplacementSpec, out: Path, *, pre_images, post_images, stable_mask, fault, scene,
+def run_displacement(spec: DisplacementSpec, out: Path, *, pre_images, post_images, stable_mask, fault,
                      cluster, cog: bool = True, quicklook: bool = True) -> dict:
     """The 3D displacement step (module notes); returns its metrics.
 
@@ -312,34 +310,11 @@ def run_displacement(spec: DisplacementSpec, out: Path, *, pre_images, post_imag
         distance = fault.signed_distance(x, y)
         metrics["fault"] = fault_section(fields, sigmas, varios, fault, distance, x, y, spec.window, spec.step, res)
 
-    # ---- truth (synthetic event)
-    if scene is not None:
-        from tiledsm.evaluate.displacement import FieldGrid
-
-        grid = FieldGrid(transform, crs, x, y, spec.step)
-        metrics["truth"] = _truth(scene, fields, sigmas, stable, grid, spec.window, fault, metrics.get("fault"),
-                                  out / "scene" if cog else None)
     if quicklook:
         _figures(ds, fields, stable, fault, metrics, out, dout)
     metrics["timings"] = timings
     metrics["products"] = {p.name: str(p.relative_to(out)) for p in sorted(dout.iterdir())}
     return metrics
-
-
-def _truth(scene, fields, sigmas, stable, grid, window: int, fault, fault_doc, cogs: Path | None) -> dict:
-    """The errors against the synthetic event's truth, scored as
-    :mod:`tiledsm.evaluate.displacement` scores a finished run (the truth on
-    the field grid as ``true_dE.tif`` ... into ``cogs``); the truth's
-    profiles join the fault section's (its figure draws them)."""
-    from tiledsm.evaluate.displacement import scene_truth, score_fields, write_truth_cogs
-
-    doc, truth = score_fields(fields, sigmas, stable, grid, scene_truth(scene), window=window, fault=fault,
-                              fault_doc=fault_doc)
-    if fault_doc is not None and "profiles" in doc:
-        fault_doc["profiles"].update(doc.pop("profiles"))
-    if cogs is not None:
-        write_truth_cogs(truth, grid, cogs)
-    return doc
 
 
 def _figures(ds, fields, stable, fault, metrics, out: Path, dout: Path) -> None:

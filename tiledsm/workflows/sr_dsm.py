@@ -29,10 +29,15 @@ Steps (``pipeline: sr_dsm``), all under the run folder:
      (float32 DN with RPC tags), then its DSM on ``G``.
 
 5. ``metrics.json`` and ``report.md``: image quality of each SR image
-   against the HR image (PSNR, SSIM; Table 1 of the paper) and DSM accuracy
-   (RMSE, MRE, NMAD, completeness; Table 2) against the HR-pair DSM, plus
-   against the synthetic truth on visible ground or the given reference
-   DSM when there is one.
+   against the HR image (PSNR, SSIM; Table 1 of the paper) and each DSM's
+   report.
+
+The DSM accuracy (RMSE, MRE, NMAD, completeness; Table 2) against the
+HR-pair DSM, plus against the synthetic truth on visible ground or the
+given reference DSM when there is one (Tables 3 and 4), is not the run's:
+``tiledsm evaluate OUT`` writes it (:mod:`tiledsm.evaluate.sr_dsm`) into
+``OUT/evaluation.json``, ``OUT/evaluation/report.md`` (Tables 1-4) and
+``OUT/evaluation/blunders.png``.
 
 The DSMs of one table are compared on the same cells: the accuracy
 statistics of every DSM are computed on the *common* cells, where the
@@ -364,18 +369,14 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
 
     Each DSM is made by the DSM stage into its folder
     (:mod:`tiledsm.workflows.stage_dsm`); image quality is reduced block by
-    block, the DSM tables are :func:`tiledsm.evaluate.sr_dsm.score`'s (on a
-    decimated grid beyond 768² cells): no grid-sized array comes to this
-    process.
+    block: no grid-sized array comes to this process. The run scores no DSM:
+    ``tiledsm evaluate OUT`` (:mod:`tiledsm.evaluate.sr_dsm`) writes the DSM
+    tables against the HR-pair DSM and the truth.
 
     Returns the metrics written to ``out/metrics.json``: per method, the
-    image quality (``image``: PSNR dB, SSIM, per view and mean) and the DSM
-    statistics (``vs_hr`` and, when available, ``vs_truth_visible`` or
-    ``vs_reference``; metres, on each table's common cells, with each DSM's
-    own completeness), the common cells of each table (``common``), timings
-    in seconds.
+    image quality (``image``: PSNR dB, SSIM, per view and mean) and its
+    DSM's report (``dsm``), the HR-pair DSM's report, timings in seconds.
     """
-    from tiledsm.evaluate.sr_dsm import SRDSMTruth, score, write_blunder_map
     from tiledsm.io import write_cog
     from tiledsm.plan.core import Limits
     from tiledsm.synth.degrade import degrade
@@ -396,12 +397,8 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
         "pipeline": "sr_dsm", "name": recipe.name, "input": info["description"],
         "sr": {**sr.model_dump(), "border": border},
     }
-    truth = SRDSMTruth(truth=_str(info.get("truth")), visible=_str(info.get("visible")), label=_str(info.get("label")),
-                       reference=_str(info.get("reference")))
-    if truth.truth:
-        metrics["truth"] = truth.truth
-    if truth.reference:
-        metrics["reference"] = truth.reference
+    if info.get("reference"):
+        metrics["reference"] = str(info["reference"])
     with shared_cluster(cluster) as run_cluster:
         def make_dsm(views, grid, folder):
             return _make_dsm(views, grid, recipe, folder, run_cluster, overwrite, plan_cluster=plan_cluster,
@@ -450,20 +447,7 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
                 _, row["dsm"], _ = make_dsm(sr_views, grid, folder)
             methods[name] = row
             timings[name] = time.perf_counter() - t0
-        # 4. the tables (decimated beyond 768² cells) and the blunder map
-        t0 = time.perf_counter()
-        with compute_context(run_cluster):
-            tables = score(out, truth, list(sr.models))
-            write_blunder_map(out, truth, list(sr.models), out / "blunders.png")
-        timings["scores"] = time.perf_counter() - t0
-    scores = tables["scores"]
-    metrics["common"] = tables["common"]
-    metrics["table_step"] = tables["table_step"]
-    if "regions" in tables:
-        metrics["regions"] = tables["regions"]
-    metrics["hr"].update(scores.get("hr", {}))
-    for name, row in methods.items():
-        row.update(scores[name])
+    # the DSM tables (against the HR-pair DSM and the truth) are tiledsm evaluate's (tiledsm.evaluate.sr_dsm)
     metrics["methods"] = methods
     timings["total"] = time.perf_counter() - t_start
     metrics["timings"] = timings
@@ -474,10 +458,6 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
         Path(tmp).write_text(markdown_report(metrics))
     log.info("sr_dsm: wrote %s", out / "report.md")
     return metrics
-
-
-def _str(path) -> str | None:
-    return None if path is None else str(path)
 
 
 # ----------------------------------------------------------------- plan

@@ -404,9 +404,12 @@ def _region_lines(regions: dict) -> list[str]:
 
 
 def markdown_report(metrics: dict) -> str:
-    """The run's ``report.md``: Table 1 (image quality) and Table 2 (DSM
+    """An ``sr_dsm`` report: Table 1 (image quality) and, when ``metrics``
+    holds the DSM tables (:func:`tiledsm.evaluate.sr_dsm.with_tables`, as
+    ``tiledsm evaluate`` writes ``evaluation/report.md``), Table 2 (DSM
     accuracy against the HR-pair DSM), plus Table 3 against the synthetic
-    truth (visible ground) or the given reference DSM when available.
+    truth (visible ground) or the given reference DSM when available; a
+    run's own ``report.md`` (no tables) says where they come from.
 
     The accuracy columns (metres; MRE in percent) of Tables 2 and 3 are on
     each table's common cells (``metrics["common"]``, see
@@ -431,18 +434,23 @@ def markdown_report(metrics: dict) -> str:
     for name, r in m.items():
         if "image" in r:
             lines.append(f"| {LABELS.get(name, name)} | {_fmt(r['image']['psnr_db'], '.2f')} | {_fmt(r['image']['ssim'], '.4f')} |")
-    lines += [
-        "",
-        "**Table 2.** DSM accuracy against the DSM of the HR pair.",
-        "",
-        *_common_lines(metrics, "vs_hr", "the HR-pair DSM"),
-        "| Method | RMSE (m) | MRE (%) | NMAD (m) | Blunders (%) | Completeness (%) |",
-        "|---|---|---|---|---|---|",
-    ]
-    for name, r in m.items():
-        s = r["vs_hr"]
-        lines.append(f"| {LABELS.get(name, name)} | {_fmt(s['rmse'], '.3f')} | {_fmt(s.get('mre'), '.4f', 100)} | "
-                     f"{_fmt(s['nmad'], '.3f')} | {_fmt(s.get('blunder_rate'), '.2f', 100)} | {_fmt(s['completeness'], '.1f', 100)} |")
+    if not any("vs_hr" in r for r in m.values()):  # a run's own report: the DSMs are scored by tiledsm evaluate
+        lines += ["", "DSM accuracy (Tables 2-4): `tiledsm evaluate` on this run folder writes them into "
+                  "`evaluation/report.md` (and `evaluation.json`, `evaluation/blunders.png`).", ""]
+    else:
+        lines += [
+            "",
+            "**Table 2.** DSM accuracy against the DSM of the HR pair.",
+            "",
+            *_common_lines(metrics, "vs_hr", "the HR-pair DSM"),
+            "| Method | RMSE (m) | MRE (%) | NMAD (m) | Blunders (%) | Completeness (%) |",
+            "|---|---|---|---|---|---|",
+        ]
+        for name, r in m.items():
+            s = r["vs_hr"]
+            lines.append(f"| {LABELS.get(name, name)} | {_fmt(s['rmse'], '.3f')} | {_fmt(s.get('mre'), '.4f', 100)} | "
+                         f"{_fmt(s['nmad'], '.3f')} | {_fmt(s.get('blunder_rate'), '.2f', 100)} | "
+                         f"{_fmt(s['completeness'], '.1f', 100)} |")
     key, title = None, None
     if "vs_truth_visible" in metrics["hr"]:
         key, title = "vs_truth_visible", "the synthetic truth, on visible ground (cells seen by both views, edges excluded)"
