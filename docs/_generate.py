@@ -229,7 +229,6 @@ def _field_descriptions(model: type) -> dict[str, str]:
 #: recipe fields that hold the fields of a dataclass (validated by name against it):
 #: ``(model, field) -> "module:Class"``; their entries are listed under the field
 DATACLASS_FIELDS = {
-    ("MatchSpec", "params"): "tiledsm.match.sgvll:SGVLLParams",
     ("TrainSRRecipe", "train"): "tiledsm.sr.train:TrainConfig",
 }
 

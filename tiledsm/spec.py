@@ -1,0 +1,39 @@
+"""The base of every parameter model: :class:`StrictModel` and the field
+metadata that names a field's command-line option (:func:`option`).
+
+A module of its own, importing nothing of tiledsm, so that the stages'
+parameter models (:class:`tiledsm.match.sgvll.SGVLLParams`...) and the
+recipe sections that hold them (:mod:`tiledsm.recipes`) share one base
+without an import circle.
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict
+
+__all__ = ["StrictModel", "option"]
+
+
+def option(name: str | None) -> dict[str, str | None]:
+    """A field's command-line spelling, for ``Field(json_schema_extra=...)``:
+    the spec is the one place that says which option sets a field, and
+    errors found validating a command's options name that option
+    (:func:`tiledsm.recipes.options_of`, :func:`tiledsm.cli.run.recipe_of_options`).
+    ``None``: a section no option of the recipe's command sets (its
+    model's options are another command's: ``orient:`` of a DSM recipe)."""
+    return {"option": name}
+
+
+class StrictModel(BaseModel):
+    """Base of every recipe and parameter model: unknown fields are errors,
+    values frozen (so hashable, when every field is).
+
+    A model is a dask task's argument (the DSM's parameters go to every
+    matching task): :meth:`__dask_tokenize__` makes its token the same for
+    equal values in any process (dask's fallback for an unknown object is
+    not: two equal models would get two tokens)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    def __dask_tokenize__(self) -> tuple[str, str]:
+        return f"{type(self).__module__}.{type(self).__qualname__}", self.model_dump_json()
