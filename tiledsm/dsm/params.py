@@ -1,4 +1,14 @@
-"""Parameters of the DSM stage (:class:`DSMParams`)."""
+"""Parameters of the DSM stage: :class:`DSMParams`, one frozen pydantic
+model holding the matching's (:class:`~tiledsm.match.sgvll.SGVLLParams`)
+and the search band's (:class:`~tiledsm.match.pyramid.SearchParams`).
+
+A recipe sets them in its ``grid`` and ``match`` sections
+(:class:`tiledsm.recipes.GridSpec`, :class:`tiledsm.recipes.MatchSpec`,
+whose ``params`` is the :class:`~tiledsm.match.sgvll.SGVLLParams` itself);
+:meth:`DSMParams.of_recipe` validates them into the engine's model, the
+parameters a recipe does not set at their defaults. Its dump
+(``model_dump()``) is the ``params`` of the run's fingerprint.
+"""
 
 from __future__ import annotations
 
