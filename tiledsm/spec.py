@@ -9,9 +9,11 @@ without an import circle.
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict
+from typing import Any, Callable
 
-__all__ = ["StrictModel", "option"]
+from pydantic import BaseModel, ConfigDict, ValidationInfo
+
+__all__ = ["StrictModel", "option", "not_below"]
 
 
 def option(name: str | None) -> dict[str, str | None]:
@@ -22,6 +24,19 @@ def option(name: str | None) -> dict[str, str | None]:
     ``None``: a section no option of the recipe's command sets (its
     model's options are another command's: ``orient:`` of a DSM recipe)."""
     return {"option": name}
+
+
+def not_below(other: str) -> Callable[[Any, ValidationInfo], Any]:
+    """A field validator (``field_validator("P2")(not_below("P1"))``): the
+    value is at least that of field ``other``, declared before it. Give the
+    field ``validate_default=True`` so a default is checked against an
+    ``other`` given alone."""
+    def check(value: Any, info: ValidationInfo) -> Any:
+        if other in info.data and value < info.data[other]:
+            raise ValueError(f"must be >= {other} ({info.data[other]}), got {value}")
+        return value
+
+    return check
 
 
 class StrictModel(BaseModel):

@@ -24,11 +24,11 @@ import math
 
 import numba as nb
 import numpy as np
-from pydantic import Field, ValidationInfo, field_validator
+from pydantic import Field, field_validator
 from scipy import ndimage
 
 from tiledsm.errors import MatchingError
-from tiledsm.spec import StrictModel
+from tiledsm.spec import StrictModel, not_below
 
 __all__ = ["SearchParams", "downsample", "search_halo", "search_from_coarse"]
 
@@ -76,12 +76,7 @@ class SearchParams(StrictModel):
     relative_labels: bool = Field(False, description="candidate heights on h_ref + k * step (relative labels) "
                                   "instead of the scene-wide lattice k * step")
 
-    @field_validator("fill_sigma")
-    @classmethod
-    def _fill_wider(cls, value: float, info: ValidationInfo) -> float:
-        if "smooth" in info.data and value < info.data["smooth"]:
-            raise ValueError(f"must be >= smooth ({info.data['smooth']}), got {value}")
-        return value
+    _fill_wider = field_validator("fill_sigma")(not_below("smooth"))
 
 
 def downsample(img: np.ndarray, factor: int) -> np.ndarray:

@@ -47,7 +47,7 @@ from tiledsm.match.sgm import aggregate, aggregate_best, remove_speckles
 from tiledsm.match import cuda_kernel
 from tiledsm.match.kernels import KERNELS, MatchKernel, register_kernel
 from tiledsm.match.sweep import MASKED_COST, cost_volume
-from tiledsm.spec import StrictModel, option
+from tiledsm.spec import StrictModel, not_below, option
 
 __all__ = [
     "SGVLLParams",
@@ -184,12 +184,7 @@ class SGVLLParams(StrictModel):
             raise ValueError(f"must be odd (a window has a centre cell), got {value}")
         return value
 
-    @field_validator("P2")
-    @classmethod
-    def _p2_above_p1(cls, value: float, info: ValidationInfo) -> float:
-        if "P1" in info.data and value < info.data["P1"]:
-            raise ValueError(f"must be >= P1 ({info.data['P1']}), got {value}")
-        return value
+    _p2_above_p1 = field_validator("P2")(not_below("P1"))
 
     @field_validator("kernel")
     @classmethod
