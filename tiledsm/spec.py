@@ -9,11 +9,11 @@ without an import circle.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 from pydantic import BaseModel, ConfigDict, ValidationInfo
 
-__all__ = ["StrictModel", "option", "not_below"]
+__all__ = ["StrictModel", "option", "not_below", "registered"]
 
 
 def option(name: str | None) -> dict[str, str | None]:
@@ -34,6 +34,20 @@ def not_below(other: str) -> Callable[[Any, ValidationInfo], Any]:
     def check(value: Any, info: ValidationInfo) -> Any:
         if other in info.data and value < info.data[other]:
             raise ValueError(f"must be >= {other} ({info.data[other]}), got {value}")
+        return value
+
+    return check
+
+
+def registered(registry: Callable[[], Iterable[str]], what: str) -> Callable[[str], str]:
+    """A field validator (``field_validator("kernel")(registered(lambda: KERNELS,
+    "matching kernel"))``): the value is a name of ``registry()`` (called
+    at validation: a registry filled by imports, or imported only then);
+    the message names the value and the known names."""
+    def check(value: str) -> str:
+        known = sorted(registry())
+        if value not in known:
+            raise ValueError(f"unknown {what} {value!r}; known: {', '.join(known)}")
         return value
 
     return check

@@ -47,7 +47,7 @@ from tiledsm.match.sgm import aggregate, aggregate_best, remove_speckles
 from tiledsm.match import cuda_kernel
 from tiledsm.match.kernels import KERNELS, MatchKernel, register_kernel
 from tiledsm.match.sweep import MASKED_COST, cost_volume
-from tiledsm.spec import StrictModel, not_below, option
+from tiledsm.spec import StrictModel, not_below, option, registered
 
 __all__ = [
     "SGVLLParams",
@@ -186,12 +186,7 @@ class SGVLLParams(StrictModel):
 
     _p2_above_p1 = field_validator("P2")(not_below("P1"))
 
-    @field_validator("kernel")
-    @classmethod
-    def _known_kernel(cls, value: str) -> str:
-        if value not in KERNELS:
-            raise ValueError(f"must be one of {sorted(KERNELS)}, got {value!r}")
-        return value
+    _known_kernel = field_validator("kernel")(registered(lambda: KERNELS, "matching kernel"))
 
     @field_validator("device")
     @classmethod
