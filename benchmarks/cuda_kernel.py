@@ -38,7 +38,6 @@ Prints a markdown table and writes ``--json``.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import platform
 import resource
@@ -82,7 +81,7 @@ def capture(work: Path, size: int, chunk: int) -> list[Path]:
         register_kernel("capture", MatchKernel(volume, None, best=best))
     views, grid, h_range, levels, params = profile_match.setup(work, size, chunk, None)
     coarse1 = profile_match.coarse_level(views, grid, h_range, levels, params) if levels > 1 else None
-    params = dataclasses.replace(params, match=dataclasses.replace(params.match, kernel="capture"))
+    params = params.model_copy(update={"match": params.match.model_validate(params.match.model_dump() | {"kernel": "capture"})})
     out = []
     work.mkdir(parents=True, exist_ok=True)
     for name, (geom, cells, search) in profile_match.tasks(views, grid, h_range, levels, params, coarse1).items():

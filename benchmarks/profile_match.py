@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import cProfile
-import dataclasses
 import datetime as _dt
 import json
 import os
@@ -124,7 +123,7 @@ def _layout(geom, grid, params):
 def _params(kernel: str | None, base):
     if kernel is None:
         return base
-    return dataclasses.replace(base, match=dataclasses.replace(base.match, kernel=kernel))
+    return base.model_copy(update={"match": base.match.model_validate(base.match.model_dump() | {"kernel": kernel})})
 
 
 def setup(work: Path, size: int, chunk: int, levels: int | None):

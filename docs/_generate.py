@@ -2,7 +2,7 @@
 
 The CLI reference is read from the argparse parsers (:func:`tiledsm.cli.build_parser`),
 the recipe reference from the pydantic models of :data:`tiledsm.pipelines.PIPELINES`
-(plus the matching parameters of :class:`tiledsm.match.sgvll.SGVLLParams`), the API
+(plus the fields of the dataclasses their dict fields hold, :data:`DATACLASS_FIELDS`), the API
 reference lists every module of the package for mkdocstrings, and the benchmark pages
 render ``benchmarks/results/*.json``. None of them can drift from the code: they are
 not written by hand. :func:`pages` returns every page as ``{path: markdown}``; the
@@ -229,7 +229,6 @@ def _field_descriptions(model: type) -> dict[str, str]:
 #: recipe fields that hold the fields of a dataclass (validated by name against it):
 #: ``(model, field) -> "module:Class"``; their entries are listed under the field
 DATACLASS_FIELDS = {
-    ("MatchSpec", "params"): "tiledsm.match.sgvll:SGVLLParams",
     ("TrainSRRecipe", "train"): "tiledsm.sr.train:TrainConfig",
 }
 

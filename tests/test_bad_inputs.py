@@ -159,6 +159,8 @@ def k(tmp_path_factory):
 
     images = f"  images: [{v0}, {v1}]\n"
     f["r_windw"] = recipe("windw.yaml", f"pipeline: dsm\ninput:\n{images}match: {{params: {{windw: 5}}}}\n")
+    f["r_window_even"] = recipe("window_even.yaml", f"pipeline: dsm\ninput:\n{images}match: {{params: {{window: 4}}}}\n")
+    f["r_p1_above_p2"] = recipe("p1_above_p2.yaml", f"pipeline: dsm\ninput:\n{images}match: {{params: {{P1: 3}}}}\n")
     f["r_field"] = recipe("field.yaml", f"pipeline: dsm\ninput:\n{images}grid: {{chunck: 64}}\n")
     f["r_pipeline"] = recipe("pipeline.yaml", f"pipeline: dsn\ninput:\n{images}")
     f["r_pipeline_list"] = recipe("pipeline_list.yaml", f"pipeline: [dsm]\ninput:\n{images}")
@@ -251,6 +253,11 @@ CASES = [
          lambda f: ["metres_no_crs.geojson", "not longitude/latitude", '"crs"']),
     # --- run (recipes)
     Case("run-misspelled-match-param", lambda f, out: ["run", str(f["r_windw"]), "--out", str(out)], lambda f: ["windw"]),
+    # the matching parameters' own checks name the field path (pydantic's location)
+    Case("run-even-match-window", lambda f, out: ["run", str(f["r_window_even"]), "--out", str(out)],
+         lambda f: ["window_even.yaml", "match.params.window", "must be odd", "4"]),
+    Case("run-p1-above-default-p2", lambda f, out: ["run", str(f["r_p1_above_p2"]), "--out", str(out)],
+         lambda f: ["match.params.P2", ">= P1 (3.0)", "2.0"]),
     Case("run-unknown-field", lambda f, out: ["run", str(f["r_field"]), "--out", str(out)], lambda f: ["chunck"]),
     Case("run-unknown-pipeline", lambda f, out: ["run", str(f["r_pipeline"]), "--out", str(out)], lambda f: ["dsn"]),
     Case("run-pipeline-is-a-list", lambda f, out: ["run", str(f["r_pipeline_list"]), "--out", str(out)],

@@ -617,6 +617,37 @@ def test_every_spec_option_exists_in_its_command(command, model):
     assert not missing, f"tiledsm {command} --help lacks {missing}"
 
 
+def test_field_names_are_dsm_recipe_fields_spelled_by_the_command():
+    """:class:`tiledsm.plan.FieldNames` lists the DSM recipe fields a plan's
+    messages name: each is a field path of ``DSMRecipe`` (a renamed field
+    cannot leave a stale name), and ``tiledsm dsm`` spells it with the
+    option its spec's metadata names, which the command has (or with the
+    path, for a field no option sets: ``input.rpcs``)."""
+    from dataclasses import fields
+
+    from pydantic import BaseModel
+
+    from tiledsm.plan import RECIPE_NAMES, FieldNames
+    from tiledsm.recipes import options_of
+    from tiledsm.workflows.dsm import DSMRecipe
+
+    def paths(model, prefix=""):
+        for name, info in model.model_fields.items():
+            yield prefix + name
+            for arg in (info.annotation, *getattr(info.annotation, "__args__", ())):
+                if isinstance(arg, type) and issubclass(arg, BaseModel):
+                    yield from paths(arg, f"{prefix}{name}.")
+
+    recipe_paths = set(paths(DSMRecipe))
+    spelled = FieldNames.of_options(options_of(DSMRecipe))
+    help_text = _help("dsm")
+    for f in fields(FieldNames):
+        path, option = getattr(RECIPE_NAMES, f.name), getattr(spelled, f.name)
+        assert path in recipe_paths, f"FieldNames.{f.name}: {path} is no field of a DSM recipe"
+        assert option == path or all(o in help_text for o in option.split("/") if o.startswith("--")), (f.name, option)
+    assert (spelled.chunk, spelled.levels, spelled.images, spelled.rpcs) == ("--chunk", "--levels", "IMAGES", "input.rpcs")
+
+
 # ------------------------------------------------------------------ memory
 def test_worker_memory_formula():
     from tiledsm.plan import WORKER_BASELINE_MIB, estimate_worker_memory

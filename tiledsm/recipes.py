@@ -15,28 +15,20 @@ as ``recipe.resolved.yaml``.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal, Optional
+from typing import Annotated, Any, Literal, Optional
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, Field, ValidationError, field_validator, model_validator
 
 from tiledsm.errors import RecipeError
+from tiledsm.match.sgvll import SGVLLParams
+from tiledsm.spec import StrictModel, option  # the base lives apart: stage parameter models share it
 
 __all__ = [
     "StrictModel", "SynthInput", "InputSpec", "GridSpec", "MatchSpec", "JobQueueSpec", "ClusterSpec", "OutputSpec",
-    "grid_from_spec", "dsm_params", "check_size", "load_cluster", "read_recipe", "format_errors", "dump_resolved",
+    "ChunkSide", "grid_from_spec", "check_size", "load_cluster", "read_recipe", "format_errors", "dump_resolved",
     "option", "options_of", "spelling", "INPUT_KEYS",
 ]
-
-
-def option(name: str | None) -> dict[str, str | None]:
-    """A field's command-line spelling, for ``Field(json_schema_extra=...)``:
-    the spec is the one place that says which option sets a field, and
-    errors found validating a command's options name that option
-    (:func:`options_of`, :func:`tiledsm.cli.run.recipe_of_options`).
-    ``None``: a section no option of the recipe's command sets (its
-    model's options are another command's: ``orient:`` of a DSM recipe)."""
-    return {"option": name}
 
 
 def options_of(model: type[BaseModel], prefix: str = "") -> dict[str, str]:
@@ -65,13 +57,6 @@ def spelling(model: type[BaseModel], by_option: bool) -> dict[str, str]:
     option when a command built the recipe from its options (``by_option``),
     the field path otherwise (a recipe file, ``tiledsm run``)."""
     return {f: o if by_option else f for f, o in options_of(model).items()}
-
-
-class StrictModel(BaseModel):
-    """Base of every recipe model: unknown fields are errors, values frozen."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
 
 
 class SynthInput(StrictModel):
@@ -104,6 +89,17 @@ class InputSpec(StrictModel):
         return self
 
 
+def _even_chunk(value: int) -> int:
+    # even chunks keep coarse and fine chunk corners aligned
+    if value % 2:
+        raise ValueError(f"must be even (a coarser level's chunks are half as large), got {value}")
+    return value
+
+
+#: a chunk side of a DSM grid, cells: even and at least 32 (``grid.chunk``, :attr:`tiledsm.dsm.DSMParams.chunk`)
+ChunkSide = Annotated[int, Field(ge=32), AfterValidator(_even_chunk)]
+
+
 class GridSpec(StrictModel):
     """Output ground grid; everything optional (derived from the views)."""
 
@@ -113,15 +109,7 @@ class GridSpec(StrictModel):
     resolution: Optional[float] = Field(None, gt=0, description="metres", json_schema_extra=option("--resolution"))
     bounds: Optional[tuple[float, float, float, float]] = Field(None, description="xmin ymin xmax ymax, grid CRS",
                                                                 json_schema_extra=option("--bounds"))
-    chunk: int = Field(512, ge=32, description="chunk side, cells", json_schema_extra=option("--chunk"))
-
-    @field_validator("chunk")
-    @classmethod
-    def _even_chunk(cls, value: int) -> int:
-        # even chunks keep coarse and fine chunk corners aligned (tiledsm.dsm.DSMParams checks it too)
-        if value % 2:
-            raise ValueError(f"must be even (a coarser level's chunks are half as large), got {value}")
-        return value
+    chunk: ChunkSide = Field(512, description="chunk side, cells", json_schema_extra=option("--chunk"))
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -133,48 +121,23 @@ class GridSpec(StrictModel):
 
 
 class MatchSpec(StrictModel):
-    """Dense matching parameters (see :class:`tiledsm.match.sgvll.SGVLLParams`)."""
+    """Dense matching parameters of the DSM stage (with the grid's, the
+    engine's :class:`tiledsm.dsm.DSMParams`: :meth:`~tiledsm.dsm.DSMParams.of_recipe`)."""
 
     levels: Optional[int] = Field(None, ge=1, le=6, description="pyramid levels; default: from the height range",
                                   json_schema_extra=option("--levels"))
     height_range: Optional[tuple[float, float]] = Field(None, json_schema_extra=option("--height-range"))
     height_margin: float = Field(10.0, ge=0)
     relative_correction: bool = True
-    params: dict[str, Any] = Field(default_factory=dict, validate_default=True, description="SGVLLParams fields",
-                                   json_schema_extra=option("--device"))
-
-    @field_validator("params")
-    @classmethod
-    def _matching_params(cls, value: dict[str, Any]) -> dict[str, Any]:
-        """Every field of :class:`~tiledsm.match.sgvll.SGVLLParams`, those
-        given checked by name and type, the others at their defaults (so
-        the resolved recipe shows every value used)."""
-        import dataclasses
-
-        from pydantic import TypeAdapter
-
-        from tiledsm.match.sgvll import SGVLLParams
-
-        names = [f.name for f in dataclasses.fields(SGVLLParams)]
-        unknown = [k for k in value if k not in names]
-        if unknown:
-            raise ValueError(f"unknown matching parameter(s) {', '.join(map(repr, unknown))}; valid: {', '.join(names)}")
-        try:
-            params = TypeAdapter(SGVLLParams).validate_python(dict(value))
-        except ValidationError as exc:
-            # the dataclass's own checks come with no field: their message alone
-            raise ValueError("; ".join((f"{'.'.join(map(str, e['loc']))}: " if e["loc"] else "")
-                                       + e["msg"].removeprefix("Value error, ") for e in exc.errors())) from None
-        except (TypeError, ValueError) as exc:  # the dataclass's own checks
-            raise ValueError(str(exc)) from None
-        return dataclasses.asdict(params)
+    # every value shown in the resolved recipe; --device sets params.device (its field's option)
+    params: SGVLLParams = Field(SGVLLParams(), description="matching parameters (SGVLLParams)")
 
 
 def grid_from_spec(grid: GridSpec):
     """The :class:`~tiledsm.geometry.grid.GroundGrid` a recipe's ``grid``
     section names (``like`` or ``bounds``), or ``None`` when the stage
     derives it from the views (then ``crs``/``resolution`` go through
-    :func:`dsm_params`)."""
+    :meth:`tiledsm.dsm.DSMParams.of_recipe`)."""
     from tiledsm.geometry.grid import GroundGrid
     from tiledsm.io.grids import grid_like
 
@@ -183,24 +146,6 @@ def grid_from_spec(grid: GridSpec):
     if grid.bounds:
         return GroundGrid.from_bounds(grid.crs, grid.bounds, grid.resolution, chunk=grid.chunk)
     return None
-
-
-def dsm_params(grid: GridSpec, match: MatchSpec, *, resolution: float | None = None, chunk: int | None = None):
-    """:class:`tiledsm.dsm.DSMParams` of a recipe's ``grid`` and ``match``
-    sections (``resolution`` and ``chunk`` override the grid's)."""
-    from tiledsm.dsm import DSMParams
-    from tiledsm.match.sgvll import SGVLLParams
-
-    return DSMParams(
-        resolution=resolution if resolution is not None else grid.resolution,
-        crs=grid.crs,
-        chunk=chunk if chunk is not None else grid.chunk,
-        levels=match.levels,
-        height_range=match.height_range,
-        height_margin=match.height_margin,
-        relative_correction=match.relative_correction,
-        match=SGVLLParams(**match.params),
-    )
 
 
 def check_size(value: str, name: str, error: type[Exception] | None = None) -> int:

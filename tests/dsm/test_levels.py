@@ -5,8 +5,6 @@ is in ``tests/test_dsm_engine.py``."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 import rasterio
@@ -44,7 +42,7 @@ def _band(truth: np.ndarray, step: float, r0: int, c0: int) -> np.ndarray:
 @pytest.mark.parametrize("relative", [False, True], ids=["absolute", "relative"])
 def test_candidates_lie_on_the_scene_lattice_unless_relative(level0, relative):
     views, geom, h_range, params, truth = level0
-    params = dataclasses.replace(params, search=SearchParams(relative_labels=relative))
+    params = params.model_copy(update={"search": SearchParams(relative_labels=relative)})
     r0 = c0 = 144
     search = _band(truth, geom.step, r0, c0)
     details: dict = {}
@@ -83,7 +81,7 @@ def test_task_window_reaches_the_restart_lines_plus_half_a_window():
     # chunks on the restart lines need only the window's cells
     assert _layout(1024, DSMParams(chunk=512)).task_window(1, 1) == (512, 1024, 510, 1024)
     assert DSMParams().halo() == 64  # the most a chunk on even cells needs: 62 + 2
-    no_restarts = DSMParams(chunk=96, match=dataclasses.replace(DSMParams().match, path_period=0))
+    no_restarts = DSMParams(chunk=96, match=DSMParams().match.model_copy(update={"path_period": 0}))
     assert _layout(384, no_restarts).task_window(0, 1) == (96, 192, 96 - 10, 192 + 10)
 
 
@@ -127,7 +125,7 @@ def test_a_task_window_matches_its_chunk_as_a_full_halo_does(level0):
     the same chunk matched with a 64-cell halo on every side, bit for bit;
     a window one cell short of the restart line's window differs."""
     views, geom, h_range, params, truth = level0
-    start, stop, lo, hi = _layout(384, dataclasses.replace(params, chunk=96)).task_window(0, 1)
+    start, stop, lo, hi = _layout(384, params.model_copy(update={"chunk": 96})).task_window(0, 1)
 
     def chunk(a: int, b: int) -> np.ndarray:
         search = _global_band(truth, geom.step, (a, b), (a, b))

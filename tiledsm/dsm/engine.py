@@ -4,7 +4,6 @@ fingerprint, and the pair shortcut."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import time
@@ -102,14 +101,14 @@ def dsm_fingerprint(views: Sequence[View], grid: GroundGrid, h_range, levels: in
               "width": grid.width, "height": grid.height, "chunk": grid.chunk},
         height_range=list(h_range),
         levels=levels,
-        params=dataclasses.asdict(params),
+        params=params.model_dump(),
     )
 
 
 def _params_dict(params: DSMParams) -> str:
     import json
 
-    return json.dumps(dataclasses.asdict(params))
+    return json.dumps(params.model_dump())
 
 
 def prepare_views(views: Sequence[View], params: DSMParams) -> tuple[tuple[float, float], list[View], dict]:

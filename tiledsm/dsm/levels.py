@@ -5,7 +5,6 @@ coarser level; where the chunks and halos are is
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -167,7 +166,7 @@ def match_cells(
     g = geom.grid
     # speckles are removed afterwards over the whole level (tiledsm.dsm.stages), with
     # their own halo: the component sizes are then exact in any chunking
-    kernel = dataclasses.replace(params.match, speckle_size=0)
+    kernel = params.match.model_copy(update={"speckle_size": 0})
     height, conf = match_block(
         images, rpcs, windows, sub.x, sub.y, sub.crs, lo, hi, kernel, step=geom.step, h_ref=h_ref,
         origin=(r0, c0), axes=(float(g.x[0]), float(g.y[0]), g.resolution, -g.resolution),

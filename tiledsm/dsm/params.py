@@ -1,16 +1,30 @@
-"""Parameters of the DSM stage (:class:`DSMParams`)."""
+"""Parameters of the DSM stage: :class:`DSMParams`, one frozen pydantic
+model holding the matching's (:class:`~tiledsm.match.sgvll.SGVLLParams`)
+and the search band's (:class:`~tiledsm.match.pyramid.SearchParams`).
+
+A recipe sets them in its ``grid`` and ``match`` sections
+(:class:`tiledsm.recipes.GridSpec`, :class:`tiledsm.recipes.MatchSpec`,
+whose ``params`` is the :class:`~tiledsm.match.sgvll.SGVLLParams` itself);
+:meth:`DSMParams.of_recipe` validates them into the engine's model, the
+parameters a recipe does not set at their defaults. Its dump
+(``model_dump()``) is the ``params`` of the run's fingerprint.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from typing import Optional
 
+from pydantic import Field
 
 from tiledsm.match.pyramid import SearchParams
 from tiledsm.match.sgvll import SGVLLParams
+from tiledsm.recipes import ChunkSide, GridSpec, MatchSpec
+from tiledsm.spec import StrictModel
+
+__all__ = ["DSMParams"]
 
 
-@dataclass(frozen=True)
-class DSMParams:
+class DSMParams(StrictModel):
     """Parameters of the DSM stage.
 
     Attributes
@@ -60,27 +74,32 @@ class DSMParams:
         How a coarser level's DSM becomes a finer level's search band.
     """
 
-    resolution: float | None = None
-    crs: str | None = None
-    chunk: int = 512
-    levels: int | None = None
-    max_candidates: int = 128
-    height_range: tuple[float, float] | None = None
-    height_margin: float = 10.0
-    refine_steps: int = 4
-    sweep_step_factor: float = 2.0
-    relative_correction: bool = True
-    match: SGVLLParams = field(default_factory=SGVLLParams)
-    search: SearchParams = field(default_factory=SearchParams)
+    resolution: Optional[float] = Field(None, gt=0, description="ground cell size, metres; None: the views' mean GSD")
+    crs: Optional[str] = Field(None, description="CRS of the default grid (projected, metres); None: UTM zone of the "
+                               "scene centre")
+    chunk: ChunkSide = Field(512, description="chunk side of the output grid, cells (even)")
+    levels: Optional[int] = Field(None, ge=1, description="pyramid levels; None: from the height range")
+    max_candidates: int = Field(128, ge=1, description="heights a full-resolution sweep may need before levels=None "
+                                "adds a level")
+    height_range: Optional[tuple[float, float]] = Field(None, description="scene height range, ellipsoidal metres; "
+                                                        "None: from tie points")
+    height_margin: float = Field(10.0, ge=0, description="metres added on both sides of the tie-point height range")
+    refine_steps: int = Field(4, ge=0, description="height steps searched on each side of the upsampled coarser DSM")
+    sweep_step_factor: float = Field(2.0, ge=1, description="the coarsest level of two or more sweeps with steps "
+                                     "this many times its own")
+    relative_correction: bool = Field(True, description="correct the relative pointing error of views 2.. by a "
+                                      "translation estimated from tie points")
+    match: SGVLLParams = Field(SGVLLParams(), description="matching parameters")
+    search: SearchParams = Field(SearchParams(), description="how a coarser level's DSM becomes a finer level's band")
 
-    def __post_init__(self) -> None:
-        if self.chunk < 32 or self.chunk % 2:
-            # even chunks keep coarse and fine chunk corners aligned
-            raise ValueError(f"DSMParams.chunk must be even and >= 32, got {self.chunk}")
-        if self.levels is not None and self.levels < 1:
-            raise ValueError(f"DSMParams.levels must be >= 1, got {self.levels}")
-        if self.sweep_step_factor < 1:
-            raise ValueError(f"DSMParams.sweep_step_factor must be >= 1, got {self.sweep_step_factor}")
+    @classmethod
+    def of_recipe(cls, grid: GridSpec, match: MatchSpec) -> DSMParams:
+        """The parameters of a recipe's ``grid`` and ``match`` sections
+        (each value already checked there, naming its field): the grid's
+        cell size, CRS and chunk, the matching section's fields with its
+        ``params`` as :attr:`match`; the others at their defaults."""
+        return cls.model_validate({**grid.model_dump(include={"resolution", "crs", "chunk"}),
+                                   **match.model_dump(exclude={"params"}), "match": match.params})
 
     def halo(self) -> int:
         """Most cells (even) a matching task reaches beyond its chunk

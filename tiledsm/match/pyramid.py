@@ -21,19 +21,19 @@ arrays float32 with NaN nodata; downsampled pixel ``[i, j]`` covers pixels
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
+from pydantic import Field, field_validator
 from scipy import ndimage
 
 from tiledsm.errors import MatchingError
+from tiledsm.spec import StrictModel, not_below
 
 __all__ = ["SearchParams", "downsample", "search_halo", "search_from_coarse"]
 
 
-@dataclass(frozen=True)
-class SearchParams:
+class SearchParams(StrictModel):
     """How a coarser DSM becomes the search band of the next finer level.
 
     Attributes
@@ -66,17 +66,17 @@ class SearchParams:
         (``benchmarks/dsm_search.py``, ``benchmarks/blunders.py``).
     """
 
-    smooth: float = 1.0
-    fill_sigma: float = 4.0
-    truncate: float = 3.0
-    hole_factor: float = 3.0
-    relative_labels: bool = False
+    smooth: float = Field(1.0, gt=0, description="Gaussian sigma of the smoothing into the reference surface, "
+                          "coarse cells")
+    fill_sigma: float = Field(4.0, validate_default=True, description="Gaussian sigma of the wider average filling holes, coarse cells "
+                              "(>= smooth)")
+    truncate: float = Field(3.0, gt=0, description="both Gaussians are cut at truncate * sigma")
+    hole_factor: float = Field(3.0, ge=1, description="the band is this many times wider where the coarser cell "
+                               "had no height")
+    relative_labels: bool = Field(False, description="candidate heights on h_ref + k * step (relative labels) "
+                                  "instead of the scene-wide lattice k * step")
 
-    def __post_init__(self) -> None:
-        if self.smooth <= 0 or self.fill_sigma < self.smooth or self.truncate <= 0 or self.hole_factor < 1:
-            raise ValueError(
-                f"SearchParams: need 0 < smooth <= fill_sigma, truncate > 0, hole_factor >= 1; got {self}"
-            )
+    _fill_wider = field_validator("fill_sigma")(not_below("smooth"))
 
 
 def downsample(img: np.ndarray, factor: int) -> np.ndarray:

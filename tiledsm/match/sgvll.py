@@ -32,12 +32,12 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
-from typing import Sequence
+from typing import Literal, Sequence
 
 import cv2
 import numba as nb
 import numpy as np
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from tiledsm.errors import MatchingError
 from tiledsm.geometry import RPC
@@ -47,6 +47,7 @@ from tiledsm.match.sgm import aggregate, aggregate_best, remove_speckles
 from tiledsm.match import cuda_kernel
 from tiledsm.match.kernels import KERNELS, MatchKernel, register_kernel
 from tiledsm.match.sweep import MASKED_COST, cost_volume
+from tiledsm.spec import StrictModel, not_below, option, registered
 
 __all__ = [
     "SGVLLParams",
@@ -56,11 +57,8 @@ __all__ = [
     "reference_surface",
 ]
 
-_INTERP = ("linear", "cubic")
 
-
-@dataclass(frozen=True)
-class SGVLLParams:
+class SGVLLParams(StrictModel):
     """Parameters of :func:`match_block`.
 
     Attributes
@@ -140,48 +138,65 @@ class SGVLLParams:
         slightly near their borders).
     """
 
-    window: int = 5
-    P1: float = 0.3
-    P2: float = 2.0
-    step_px: float = 0.5
-    zncc_min: float = 0.25
-    ratio_max: float = 0.98
-    reject_edges: bool = True
-    speckle_size: int = 150
-    speckle_slope: float = 60.0
-    speckle_steps: float = 0.5
-    proj_stride: int = 8
-    lattice_steps: int = 16
-    interpolation: str = "cubic"
-    invalid_cost: float = 1.0
-    max_candidates: int = 2048
-    ref_sigma: float = 3.0
-    weight_pairs: bool = True
-    path_period: int = 64
-    kernel: str = "fast"
-    device: str = "cpu"
+    window: int = Field(5, ge=1, description="ZNCC window side on the ground grid, cells (odd)")
+    P1: float = Field(0.3, ge=0, description="SGM penalty for a change of one height step, cost units (1 - ZNCC)")
+    P2: float = Field(2.0, validate_default=True,  # checked against a P1 given alone too
+                     description="SGM penalty for a change of more than one step, cost units (>= P1)")
+    step_px: float = Field(0.5, gt=0, description="height step as parallax of the best-separated view pair, pixels")
+    zncc_min: float = Field(0.25, description="cells whose winning (unaggregated) ZNCC is below this are NaN")
+    ratio_max: float = Field(0.98, description="cells whose aggregated peak ratio S_best / S_second exceeds this "
+                             "(ambiguous minimum) are NaN")
+    reject_edges: bool = Field(True, description="NaN where the winner is the first or last candidate of the cell")
+    speckle_size: int = Field(150, ge=0, description="connected components of fewer cells than this are removed")
+    speckle_slope: float = Field(60.0, gt=0, lt=90, description="neighbours are connected when the slope between "
+                                 "them is at most this, degrees")
+    speckle_steps: float = Field(0.5, description="... but never less than this many height steps")
+    proj_stride: int = Field(8, ge=1, description="projections computed exactly every this many cells, "
+                             "interpolated between")
+    lattice_steps: int = Field(16, ge=1, description="projections computed exactly every this many height steps, "
+                               "interpolated between")
+    interpolation: Literal["linear", "cubic"] = Field("cubic", description="image resampling (OpenCV remap)")
+    invalid_cost: float = Field(1.0, description="cost of a candidate without a valid ZNCC (nodata, flat), cost units")
+    max_candidates: int = Field(2048, description="refuse blocks needing more candidates per cell than this")
+    ref_sigma: float = Field(3.0, description="smoothing of the reference surface built from per-cell bounds, cells")
+    weight_pairs: bool = Field(True, description="with three or more views, weight each pair's ZNCC by its squared "
+                               "parallax per metre of height; false: plain mean")
+    path_period: int = Field(64, ge=0, description="semi-global paths restart every this many cells (0: never), "
+                             "which makes tiles exact with this halo")
+    kernel: str = Field("fast", description="implementation of the sweep and aggregation: fast, reference or cuda")
+    device: str = Field("cpu", description="where the cuda kernel runs: cuda, cuda:N; the others run on the cpu",
+                        json_schema_extra=option("--device"))
 
-    def __post_init__(self) -> None:
-        if self.kernel not in KERNELS:
-            raise ValueError(f"SGVLLParams.kernel must be one of {sorted(KERNELS)}, got {self.kernel!r}")
-        if self.device != "cpu":
-            if not KERNELS[self.kernel].on_device:
-                raise ValueError(f"SGVLLParams.device {self.device!r}: the {self.kernel!r} kernel runs on the CPU only")
-            KERNELS[self.kernel].check_device(self.device)
-        if self.window < 1 or self.window % 2 == 0:
-            raise ValueError(f"SGVLLParams.window must be odd and >= 1, got {self.window}")
-        if not 0 <= self.P1 <= self.P2:
-            raise ValueError(f"SGVLLParams: need 0 <= P1 <= P2, got P1={self.P1}, P2={self.P2}")
-        if self.step_px <= 0:
-            raise ValueError(f"SGVLLParams.step_px must be > 0, got {self.step_px}")
-        if self.interpolation not in _INTERP:
-            raise ValueError(f"SGVLLParams.interpolation must be one of {sorted(_INTERP)}, got {self.interpolation!r}")
-        if self.proj_stride < 1 or self.lattice_steps < 1:
-            raise ValueError("SGVLLParams: proj_stride and lattice_steps must be >= 1")
-        if self.path_period < 0 or self.speckle_size < 0:
-            raise ValueError("SGVLLParams: path_period and speckle_size must be >= 0")
-        if not 0.0 < self.speckle_slope < 90.0:
-            raise ValueError(f"SGVLLParams.speckle_slope must be in (0, 90) degrees, got {self.speckle_slope}")
+    @model_validator(mode="before")
+    @classmethod
+    def _known_names(cls, data: object) -> object:
+        """A misspelled parameter is named with the valid ones (issue 13)."""
+        unknown = [k for k in data if k not in cls.model_fields] if isinstance(data, dict) else []
+        if unknown:
+            raise ValueError(f"unknown matching parameter(s) {', '.join(map(repr, unknown))}; "
+                             f"valid: {', '.join(cls.model_fields)}")
+        return data
+
+    @field_validator("window")
+    @classmethod
+    def _odd_window(cls, value: int) -> int:
+        if value % 2 == 0:
+            raise ValueError(f"must be odd (a window has a centre cell), got {value}")
+        return value
+
+    _p2_above_p1 = field_validator("P2")(not_below("P1"))
+
+    _known_kernel = field_validator("kernel")(registered(lambda: KERNELS, "matching kernel"))
+
+    @field_validator("device")
+    @classmethod
+    def _kernel_runs_there(cls, value: str, info: ValidationInfo) -> str:
+        kernel = info.data.get("kernel")  # absent when the kernel itself was refused
+        if value != "cpu" and kernel is not None:
+            if not KERNELS[kernel].on_device:
+                raise ValueError(f"{value!r}: the {kernel!r} kernel runs on the CPU only")
+            KERNELS[kernel].check_device(value)
+        return value
 
     def speckle_max_diff(self, cell: float, step: float) -> float:
         """Largest height difference, metres, between connected neighbours

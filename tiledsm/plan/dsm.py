@@ -32,7 +32,6 @@ from tiledsm.plan.core import (
     seen_fraction,
 )
 from tiledsm.plan.memory import dsm_levels
-from tiledsm.recipes import dsm_params
 
 
 # --------------------------------------------------------------------------- DSM
@@ -168,7 +167,7 @@ def plan_dsm(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names
         ``plan``, with :attr:`Plan.prepared` for the run (None for
         synthetic input).
     """
-    from tiledsm.dsm import dsm_from_views, heights_above_geoid, open_views
+    from tiledsm.dsm import DSMParams, dsm_from_views, heights_above_geoid, open_views
     from tiledsm.dsm.stages import LEVELS_DIR
 
     out, limits = plan.out, plan.limits
@@ -191,7 +190,7 @@ def plan_dsm(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names
     for v in views:
         source = (v.rpc.source or "?").replace(v.path, "").strip(" ()") or v.rpc.source
         plan.inputs.append(InputInfo(names.images, v.path, f"{v.shape[0]} x {v.shape[1]} px, camera: {source}"))
-    params = dsm_params(recipe.grid, recipe.match)  # the recipe's models checked every value, naming its field
+    params = DSMParams.of_recipe(recipe.grid, recipe.match)  # the recipe's models checked every value, naming its field
     if spec.crs:
         _check_crs(spec.crs, names.crs)
     if params.height_range is not None and not params.height_range[0] < params.height_range[1]:
@@ -244,7 +243,7 @@ def plan_dsm(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names
             continue
         chunk = _chunk_for_budget(plan, views, grid, h_range, int(ds.attrs["levels"]), params, budget,
                                   "chunk" in spec.model_fields_set, names)
-        grid, params = dataclasses.replace(grid, chunk=chunk), dataclasses.replace(params, chunk=chunk)
+        grid, params = dataclasses.replace(grid, chunk=chunk), params.model_copy(update={"chunk": chunk})
         report["grid"]["chunk"] = chunk
         plan.grid = grid_text(grid)
         ds = build(grid, params)
@@ -408,7 +407,7 @@ def _chunk_for_budget(plan: Plan, views, grid, h_range, levels: int, params, bud
             continue
         tried = chunk
         _, memory = dsm_levels(views, dataclasses.replace(grid, chunk=chunk), h_range, levels,
-                               dataclasses.replace(params, chunk=chunk))
+                               params.model_copy(update={"chunk": chunk}))
         if budget.need(memory) <= budget.bytes:
             plan.notes.append(f"chunks of {chunk} chosen to fit {budget.whose} {format_bytes(budget.bytes)} "
                               f"(chunks of {grid.chunk} would need ~{format_bytes(need)})")

@@ -129,13 +129,13 @@ def plan_unmade_dsm(folder: Path, views, h_range: tuple[float, float], recipe: D
     """
     import dataclasses
 
-    from tiledsm.dsm import auto_levels, default_grid as views_grid
+    from tiledsm.dsm import DSMParams, auto_levels, default_grid as views_grid
     from tiledsm.plan.dsm import grid_text
     from tiledsm.plan.memory import dsm_levels
-    from tiledsm.recipes import dsm_params, grid_from_spec
+    from tiledsm.recipes import grid_from_spec
 
     spec = recipe.grid
-    params = dsm_params(spec, recipe.match)
+    params = DSMParams.of_recipe(spec, recipe.match)
     if params.height_range is not None:
         h_range = tuple(params.height_range)
     grid = grid_from_spec(spec)
