@@ -9,7 +9,7 @@ import math
 
 from tiledsm.errors import GridError, NoOverlapError
 from tiledsm.plan.core import (
-    InputInfo, Plan, check_earlier_run, existing_file, format_bounds, overlap_fraction, raster_header,
+    InputInfo, Plan, check_earlier_run, existing_file, format_bounds, namer, overlap_fraction, raster_header,
 )
 
 __all__ = ["plan_compare"]
@@ -38,13 +38,11 @@ def plan_compare(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, n
 
     from tiledsm.compare.recipe import CompareRecipe
     from tiledsm.plan.dsm import refuse_or_warn
-    from tiledsm.recipes import spelling
-
-    spelled = {**spelling(CompareRecipe, by_option=plan.command == "compare"), "out": "--out"}
+    spelled = namer(CompareRecipe, plan)
     inp, spec = recipe.input, recipe.compare
     heads = {}
     for key in ("ref", "other"):
-        name = spelled[f"input.{key}"]
+        name = spelled(f"input.{key}")
         p = existing_file(getattr(inp, key), name)
         h = raster_header(p, name)
         if h["crs"] is None:
@@ -57,16 +55,16 @@ def plan_compare(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, n
     # the comparison runs on REF's own grid, geographic CRSs included: no projected DSM grid is made
     grid = ReferenceGrid.of(open_dsm(ref_p, spec.chunk), spec.chunk)
     frac = overlap_fraction(oh["bounds"], oh["crs"], grid)
-    refuse_or_warn(plan, frac, NoOverlapError(f"{oth_p}: {spelled['input.other']}: has no ground in common with "
-                                              f"{spelled['input.ref']} {ref_p}"),
-                   f"{oth_p}: {spelled['input.other']} covers only {frac:.0%} of {spelled['input.ref']}'s grid")
-    plan.grid = grid.describe() + f"; {spelled['input.other']} covers {frac:.0%} of it"
+    refuse_or_warn(plan, frac, NoOverlapError(f"{oth_p}: {spelled('input.other')}: has no ground in common with "
+                                              f"{spelled('input.ref')} {ref_p}"),
+                   f"{oth_p}: {spelled('input.other')} covers only {frac:.0%} of {spelled('input.ref')}'s grid")
+    plan.grid = grid.describe() + f"; {spelled('input.other')} covers {frac:.0%} of it"
     if spec.stable_mask:
         from affine import Affine
 
         from tiledsm.compare.stable import exclusion_mask, polygons_touch, read_polygons
 
-        name = spelled["compare.stable_mask"]
+        name = spelled("compare.stable_mask")
         mask = existing_file(spec.stable_mask, name)
         geoms = read_polygons(mask, rh["crs"])
         step = max(1, math.ceil(max(grid.shape) / 1000))
@@ -78,13 +76,13 @@ def plan_compare(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, n
         t = grid.transform @ Affine.scale(grid.width / valid.shape[1], grid.height / valid.shape[0])
         excluded = exclusion_mask(geoms, t, valid.shape) if geoms else np.zeros(valid.shape, bool)
         plan.inputs.append(InputInfo(name, mask, f"{len(geoms)} polygons, exclude {(excluded & valid).mean():.1%} "
-                                                 f"of {spelled['input.ref']}'s cells"))
+                                                 f"of {spelled('input.ref')}'s cells"))
         if not polygons_touch(geoms, grid.bounds):
-            raise NoOverlapError(f"{mask}: {name}: no polygon lies within {spelled['input.ref']}'s extent "
+            raise NoOverlapError(f"{mask}: {name}: no polygon lies within {spelled('input.ref')}'s extent "
                                  f"{format_bounds(grid.bounds)} ({rh['crs']}): it would exclude nothing")
         if not (excluded & valid).any():
-            plan.warn(f"{mask}: {name} excludes no valid cell of {spelled['input.ref']} (sampled every {step} cells)")
-    check_earlier_run(recipe, plan.out, overwrite, spelled["out"])
+            plan.warn(f"{mask}: {name} excludes no valid cell of {spelled('input.ref')} (sampled every {step} cells)")
+    check_earlier_run(recipe, plan.out, overwrite)
     plan.reuse = ("nothing: the comparison is recomputed whole; its products are replaced when all succeeded "
                   "(a killed run leaves them as they were)")
     return plan

@@ -9,7 +9,7 @@ from __future__ import annotations
 from typing import Sequence
 
 from tiledsm.errors import InvalidOptionError
-from tiledsm.plan.core import InputInfo, Plan, check_earlier_run, existing_file, readable_raster
+from tiledsm.plan.core import InputInfo, Plan, check_earlier_run, existing_file, namer, readable_raster
 
 __all__ = ["plan_sr", "check_sr_weights"]
 
@@ -34,19 +34,17 @@ def plan_sr(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names=
     ------
     InputFileError, InvalidOptionError, SRError
     """
-    from tiledsm.recipes import spelling
     from tiledsm.sr.recipe import SRRecipe, product_name
 
-    by_option = plan.command == "sr"
-    spelled = {**spelling(SRRecipe, by_option), "out": "OUT" if by_option else "--out"}
+    spelled = namer(SRRecipe, plan)
     spec = recipe.sr
-    image = spelled["input.image"]
+    image = spelled("input.image")
     src = readable_raster(existing_file(recipe.input.image, image), image)
     if spec.device == "cuda":
         import torch
 
         if not torch.cuda.is_available():
-            raise InvalidOptionError(f"{spelled['sr.device']}: cuda: no CUDA device is available (use cpu)")
+            raise InvalidOptionError(f"{spelled('sr.device')}: cuda: no CUDA device is available (use cpu)")
     from tiledsm.io import open_scene
     from tiledsm.sr.infer import super_resolve  # imports torch: after the cheap checks
 
@@ -58,16 +56,16 @@ def plan_sr(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names=
     if spec.weights:
         from tiledsm.sr.registry import load_weights
 
-        weights = existing_file(spec.weights, spelled["sr.weights"])
-        plan.inputs.append(InputInfo(spelled["sr.weights"], weights))
+        weights = existing_file(spec.weights, spelled("sr.weights"))
+        plan.inputs.append(InputInfo(spelled("sr.weights"), weights))
         net = load_weights(weights, spec.device)
     else:
         from tiledsm.sr.registry import weight_chain
 
         if weight_chain(spec.model, spec.scale) is None:  # neither native weights nor x2 weights to apply repeatedly
-            check_sr_weights([spec.model], spec.scale, spelled["sr.scale"],
-                             f"pass {spelled['sr.weights']} FILE (see `tiledsm train-sr`), a power-of-two scale "
-                             f"or {spelled['sr.model']} bicubic")
+            check_sr_weights([spec.model], spec.scale, spelled("sr.scale"),
+                             f"pass {spelled('sr.weights')} FILE (see `tiledsm train-sr`), a power-of-two scale "
+                             f"or {spelled('sr.model')} bicubic")
         net = spec.model
     plan.product = hr = super_resolve(scene, net, spec.scale, device=spec.device, blur_sigma=spec.blur_sigma,
                                       noise=spec.noise, normalisation=spec.normalisation)
@@ -80,7 +78,7 @@ def plan_sr(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names=
                  f"{nby} x {nbx} = {nby * nbx}")
     plan.tasks = len(hr.data.__dask_graph__())
     plan.notes.append("memory per worker is not estimated for SR")
-    check_earlier_run(recipe, plan.out, overwrite, spelled["out"])
+    check_earlier_run(recipe, plan.out, overwrite, "OUT" if plan.command == "sr" else "--out")
     product = plan.out / product_name(recipe)
     plan.reuse = (f"nothing: {product.name} is written whole, atomically" +
                   (" (replacing the one of the same recipe there)" if product.exists() else ""))
