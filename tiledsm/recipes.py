@@ -120,15 +120,26 @@ class GridSpec(StrictModel):
         return self
 
 
-class MatchSpec(StrictModel):
-    """Dense matching parameters of the DSM stage (with the grid's, the
-    engine's :class:`tiledsm.dsm.DSMParams`: :meth:`~tiledsm.dsm.DSMParams.of_recipe`)."""
+class MatchSetup(StrictModel):
+    """The pyramid levels and the height range the matching searches, and
+    the tie points' relative correction: the fields a recipe's ``match``
+    section (:class:`MatchSpec`) and the engine's parameters
+    (:class:`tiledsm.dsm.DSMParams`) share, declared once here."""
 
     levels: Optional[int] = Field(None, ge=1, le=6, description="pyramid levels; default: from the height range",
                                   json_schema_extra=option("--levels"))
-    height_range: Optional[tuple[float, float]] = Field(None, json_schema_extra=option("--height-range"))
-    height_margin: float = Field(10.0, ge=0)
-    relative_correction: bool = True
+    height_range: Optional[tuple[float, float]] = Field(
+        None, description="scene height range, ellipsoidal metres; default: from tie points",
+        json_schema_extra=option("--height-range"))
+    height_margin: float = Field(10.0, ge=0, description="metres added on both sides of the tie-point height range")
+    relative_correction: bool = Field(True, description="correct the relative pointing error of views 2.. by a "
+                                      "translation estimated from tie points")
+
+
+class MatchSpec(MatchSetup):
+    """Dense matching parameters of the DSM stage (with the grid's, the
+    engine's :class:`tiledsm.dsm.DSMParams`: :meth:`~tiledsm.dsm.DSMParams.of_recipe`)."""
+
     # every value shown in the resolved recipe; --device sets params.device (its field's option)
     params: SGVLLParams = Field(SGVLLParams(), description="matching parameters (SGVLLParams)")
 

@@ -18,13 +18,12 @@ from pydantic import Field
 
 from tiledsm.match.pyramid import SearchParams
 from tiledsm.match.sgvll import SGVLLParams
-from tiledsm.recipes import ChunkSide, GridSpec, MatchSpec
-from tiledsm.spec import StrictModel
+from tiledsm.recipes import ChunkSide, GridSpec, MatchSetup, MatchSpec
 
 __all__ = ["DSMParams"]
 
 
-class DSMParams(StrictModel):
+class DSMParams(MatchSetup):
     """Parameters of the DSM stage.
 
     Attributes
@@ -78,17 +77,11 @@ class DSMParams(StrictModel):
     crs: Optional[str] = Field(None, description="CRS of the default grid (projected, metres); None: UTM zone of the "
                                "scene centre")
     chunk: ChunkSide = Field(512, description="chunk side of the output grid, cells (even)")
-    levels: Optional[int] = Field(None, ge=1, description="pyramid levels; None: from the height range")
     max_candidates: int = Field(128, ge=1, description="heights a full-resolution sweep may need before levels=None "
                                 "adds a level")
-    height_range: Optional[tuple[float, float]] = Field(None, description="scene height range, ellipsoidal metres; "
-                                                        "None: from tie points")
-    height_margin: float = Field(10.0, ge=0, description="metres added on both sides of the tie-point height range")
     refine_steps: int = Field(4, ge=0, description="height steps searched on each side of the upsampled coarser DSM")
     sweep_step_factor: float = Field(2.0, ge=1, description="the coarsest level of two or more sweeps with steps "
                                      "this many times its own")
-    relative_correction: bool = Field(True, description="correct the relative pointing error of views 2.. by a "
-                                      "translation estimated from tie points")
     match: SGVLLParams = Field(SGVLLParams(), description="matching parameters")
     search: SearchParams = Field(SearchParams(), description="how a coarser level's DSM becomes a finer level's band")
 
