@@ -586,6 +586,42 @@ def gpu_table() -> str:
             + _table(["measured", "value", "40 000² at that rate", "results file"], rows))
 
 
+#: the largest process of `tiledsm dsm --reference` over the same run's without it, at most
+REFERENCE_RATIO_TARGET = 1.1
+
+
+def memory_page() -> str:
+    """How the largest process of a whole run grows with the scene
+    (``workflow_memory.json``) and what ``--reference`` adds to ``tiledsm
+    dsm`` (``dsm_reference.json``)."""
+    wm = json.loads((RESULTS / "workflow_memory.json").read_text())
+    rows = [[f"`{r['pipeline']}`", f"{r['size']} px", f"{r['wall_s']:.0f} s",
+             f"{r['largest_process_mib']:.0f} MiB", f"{r['client_mib']:.0f} MiB", f"{r['largest_worker_mib']:.0f} MiB"]
+            for r in sorted(wm["rows"], key=lambda r: (r["pipeline"], r["size"])) if r.get("ok")]
+    ratios = [[f"`{name}`", " -> ".join(f"{s} px" for s in q["sizes"]), f"{q['ratio']:.2f}x", f"<= {q['target']:.2f}x",
+               "yes" if q["ratio"] <= q["target"] else "**no**"] for name, q in wm["ratios"].items()]
+    ref = json.loads((RESULTS / "dsm_reference.json").read_text())
+    sm = ref["summary"]
+    ref_rows = [[side, ", ".join(f"{v:.0f}" for v in sm[side]["largest_process_mib"]) + " MiB",
+                 f"{sm[side]['wall_s_median']:.0f} s"] for side in ("without", "with")]
+    return (
+        "# Memory\n\nGenerated from `benchmarks/results/*.json` when the site is built (the commands are in each "
+        "file's section of [Results files](results.md)), on the project's shared 2-core machine.\n\n"
+        "## Whole recipe runs\n\nThe largest process of a whole `tiledsm run` (its client or one of its 2 worker "
+        f"processes) at two `input.synth.size`s ([workflow_memory.json](results.md#workflow_memoryjson), "
+        f"{wm['when']}):\n\n"
+        + _table(["pipeline", "scene", "wall", "largest process", "client", "largest worker"], rows)
+        + "\n\n" + _table(["pipeline", "sizes", "largest process, ratio", "target", "met"], ratios)
+        + "".join(f"\n\nLeft out of the `{k}` runs: {v}." for k, v in wm.get("left_out", {}).items())
+        + "\n\n## `tiledsm dsm --reference`\n\nThe synthetic "
+        f"{ref['case']['size']}² scene, {ref['case']['workers']} threads, with and without `--reference` in "
+        f"alternating pairs ([dsm_reference.json](results.md#dsm_referencejson), {ref['when']}): the largest "
+        f"process of each run, and the ratio of the medians, {sm['largest_process_ratio']:.3f} (target: within "
+        f"{REFERENCE_RATIO_TARGET:.2f}x).\n\n"
+        + _table(["`--reference`", "largest process, per run", "wall, median"], ref_rows) + "\n"
+    )
+
+
 def _pick(data: Any, path: list, file: str) -> Any:
     for step in path:
         if isinstance(step, dict):
@@ -617,4 +653,5 @@ def headline_pages() -> dict[str, str]:
         "the project's 2-core machine (its speed drifts by 30-50 % within an hour: compare runs of one "
         "session only; `benchmarks/dsm_paired.py` measures a change in alternating pairs).\n\n"
         + headline_table(SPEED) + "\n## On a GPU machine\n\n" + gpu_table(),
+        f"{GENERATED}/memory.md": memory_page(),
     }
