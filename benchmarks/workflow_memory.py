@@ -42,7 +42,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 from benchmarks._measure import measure, write_result  # noqa: E402
 
-RECIPES = {"deformation": REPO / "recipes" / "deformation.yaml", "sr_dsm": REPO / "recipes" / "sr_dsm.yaml"}
+RECIPES = {"deformation": REPO / "recipes" / "deformation.yaml", "sr_dsm": REPO / "recipes" / "experiments" / "sr_dsm.yaml"}
 TARGET_RATIO = 1.25
 
 
