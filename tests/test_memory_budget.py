@@ -100,7 +100,7 @@ def test_gpu_memory_of_a_task():
     """The GPU's share of a task (the formula of estimate_worker_memory):
     volume and aggregated costs, samples (the band's wider span below the
     coarsest level), image windows, per-cell arrays; none on the CPU."""
-    from tiledsm.plan.memory import SAMPLE_SPAN, estimate_worker_memory
+    from tiledsm.dsm.memory import SAMPLE_SPAN, estimate_worker_memory
 
     cells, nd, nv, W, f = 600 * 500, 40, 3, 10**6, 2
     held = 4 * nv * W // (f * f)
@@ -146,7 +146,7 @@ def _gpu_plan(scene, out, workers: int = 2, **grid):
 
 
 def test_default_chunk_shrinks_to_fit_a_gpu(scene, tmp_path, pretend_gpu):
-    from tiledsm.plan.dsm import GPU_USABLE
+    from tiledsm.dsm.plan import GPU_USABLE
 
     # the oracle: each chunk side planned explicitly (on the 256² scene,
     # measured: 63 MiB for one task of the whole grid from chunks of 192 up,

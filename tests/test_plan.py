@@ -531,7 +531,7 @@ EMITTERS = {
     "tiledsm/workflows/displace.py": ("displace",),
     "tiledsm/cli/run.py": ("dsm", "run", "sr", "compare"),
     "tiledsm/plan/core.py": ("dsm", "run"),
-    "tiledsm/plan/dsm.py": ("dsm", "run"),
+    "tiledsm/dsm/plan.py": ("dsm", "run"),
     "tiledsm/plan/recipes.py": ("dsm", "run"),
     "tiledsm/sr/plan.py": ("sr", "run"),
     "tiledsm/compare/plan.py": ("compare", "run"),
@@ -650,7 +650,7 @@ def test_field_names_are_dsm_recipe_fields_spelled_by_the_command():
 
 # ------------------------------------------------------------------ memory
 def test_worker_memory_formula():
-    from tiledsm.plan import WORKER_BASELINE_MIB, estimate_worker_memory
+    from tiledsm.dsm.memory import WORKER_BASELINE_MIB, estimate_worker_memory
 
     m = estimate_worker_memory((640, 640), 100, views=2, window_px=10**6, decimation=2, itemsize=2)
     held = 4 * 2 * 10**6 // 4
@@ -670,7 +670,7 @@ def test_worker_baseline_counts_the_cuda_context():
     from types import SimpleNamespace
 
     from tiledsm.match.sgvll import SGVLLParams
-    from tiledsm.plan.memory import CUDA_CONTEXT_MIB, WORKER_BASELINE_MIB, worker_baseline
+    from tiledsm.dsm.memory import CUDA_CONTEXT_MIB, WORKER_BASELINE_MIB, worker_baseline
 
     assert worker_baseline(SGVLLParams()) == WORKER_BASELINE_MIB * 2**20
     assert worker_baseline(SGVLLParams(kernel="reference")) == WORKER_BASELINE_MIB * 2**20

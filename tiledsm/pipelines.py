@@ -30,7 +30,7 @@ from tiledsm.compare.plan import plan_compare
 from tiledsm.compare.recipe import CompareRecipe
 from tiledsm.compare.run import run_compare
 from tiledsm.errors import RecipeError
-from tiledsm.plan.dsm import plan_dsm
+from tiledsm.dsm.plan import plan_dsm
 from tiledsm.orient.plan import plan_orient
 from tiledsm.orient.run import run_orient
 from tiledsm.orient.recipe import OrientRecipe
@@ -120,7 +120,7 @@ def plan_recipe(
     """Plan any recipe into the folder ``out`` (made absolute): the workers,
     the scheduler and the folder's lock first (:func:`tiledsm.plan.new_plan`),
     then the plan of the recipe's pipeline (:attr:`Pipeline.plan`, e.g.
-    :func:`tiledsm.plan.plan_dsm`), or, for a pipeline without one, the
+    :func:`tiledsm.dsm.plan.plan_dsm`), or, for a pipeline without one, the
     checks every recipe gets (:func:`tiledsm.plan.plan_inputs`).
 
     ``names`` (:class:`~tiledsm.plan.FieldNames`, default the recipe's

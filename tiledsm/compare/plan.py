@@ -10,6 +10,7 @@ import math
 from tiledsm.errors import GridError, NoOverlapError
 from tiledsm.plan.core import (
     InputInfo, Plan, check_earlier_run, existing_file, format_bounds, namer, overlap_fraction, raster_header,
+    refuse_or_warn,
 )
 
 __all__ = ["plan_compare"]
@@ -37,7 +38,6 @@ def plan_compare(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, n
     import numpy as np
 
     from tiledsm.compare.recipe import CompareRecipe
-    from tiledsm.plan.dsm import refuse_or_warn
     spelled = namer(CompareRecipe, plan)
     inp, spec = recipe.input, recipe.compare
     heads = {}

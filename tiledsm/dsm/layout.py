@@ -1,7 +1,7 @@
 """Where the tasks of one pyramid level read and write: its matching
 chunks, and every halo and depth around them, computed once per level
 (:class:`LevelLayout`). The engine (:mod:`tiledsm.dsm.stages`) and the
-plan's memory estimate (:func:`tiledsm.plan.memory.dsm_levels`) ask it;
+plan's memory estimate (:func:`tiledsm.dsm.memory.dsm_levels`) ask it;
 nothing else restates the arithmetic.
 
 Conventions: cells of the level's grid, rows then columns; windows are

@@ -168,7 +168,7 @@ class _Workspace:
     which would order every thread's work behind every other's. A buffer
     grows (by a quarter more than asked, to spare a task of slightly
     larger shape a new allocation) and never shrinks: a thread holds the
-    device memory of its largest task (:func:`tiledsm.plan.memory`
+    device memory of its largest task (:func:`tiledsm.dsm.memory`
     counts that per task).
     """
 

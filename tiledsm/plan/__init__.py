@@ -38,10 +38,12 @@ by :func:`tiledsm.pipelines.plan_recipe` (``tiledsm dsm``, ``sr``, ``compare``, 
 ``--dry-run`` prints :meth:`Plan.summary` and exits; a run reuses the plan's
 opened views, tie points and lazy DSM, so nothing is done twice.
 
-The package: :mod:`.core` (the plan, limits, shared checks), :mod:`.memory`
-(worker memory, level sizes), :mod:`.dsm` and :mod:`.recipes` (whole
-recipes); the plans of ``sr``, ``compare``, ``ortho`` and ``orient`` are
-their stage packages' (e.g. :mod:`tiledsm.ortho.plan`).
+The package: :mod:`.core` (the plan, limits, the checks every stage
+shares) and :mod:`.recipes` (the inputs of recipes without a stage plan).
+Each stage plans itself in its own package: :mod:`tiledsm.dsm.plan` (with
+the worker memory model, :mod:`tiledsm.dsm.memory`),
+:mod:`tiledsm.sr.plan`, :mod:`tiledsm.compare.plan`, :mod:`tiledsm.ortho.plan`,
+:mod:`tiledsm.orient.plan`.
 
 Conventions: sizes in cells are ``rows x columns``; memory in bytes (MiB
 and GiB in text are 2**20 and 2**30 bytes); heights are ellipsoidal metres.
@@ -61,17 +63,6 @@ from tiledsm.plan.core import (
     LOW_COMPLETENESS,
     MOSTLY_OUTSIDE,
 )
-from tiledsm.plan.memory import (
-    LevelPlan,
-    MemoryEstimate,
-    estimate_worker_memory,
-    dsm_levels,
-    WORKER_BASELINE_MIB,
-)
-from tiledsm.plan.dsm import (
-    dsm_reuse,
-    plan_dsm,
-)
 from tiledsm.plan.recipes import (
     check_sr_weights,
     plan_inputs,
@@ -82,21 +73,14 @@ __all__ = [
     "FieldNames",
     "Limits",
     "InputInfo",
-    "LevelPlan",
-    "MemoryEstimate",
     "PreparedDSM",
     "Plan",
-    "estimate_worker_memory",
-    "dsm_levels",
     "check_workers",
     "new_plan",
     "existing_file",
     "seen_fraction",
-    "dsm_reuse",
     "check_sr_weights",
-    "plan_dsm",
     "plan_inputs",
-    "WORKER_BASELINE_MIB",
     "LOW_COMPLETENESS",
     "MOSTLY_OUTSIDE",
 ]

@@ -6,10 +6,12 @@ import math
 import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
-from tiledsm.errors import InputFileError, InvalidOptionError, RunTooLargeError
-from tiledsm.plan.memory import LevelPlan, MemoryEstimate, GIB
+from tiledsm.errors import InputFileError, InvalidOptionError, RunTooLargeError, TiledsmError
+
+if TYPE_CHECKING:  # the DSM stage's memory model: only named here
+    from tiledsm.dsm.memory import LevelPlan, MemoryEstimate
 
 
 #: below this completeness inside the common footprint a DSM run warns
@@ -294,7 +296,7 @@ def describe_cluster(config) -> str:
 
         n = (config or ClusterConfig()).local_workers
         limit = worker_memory_budget(config)
-        return f"local cluster: {n} single-threaded worker processes, memory limit ~{limit / GIB:.1f} GiB each"
+        return f"local cluster: {n} single-threaded worker processes, memory limit ~{limit / 2**30:.1f} GiB each"
     if config.scheduler == "synchronous":
         return "in this process (synchronous scheduler)"
     if config.scheduler == "threads":
@@ -432,3 +434,12 @@ def check_earlier_run(recipe, out: Path, overwrite: bool, name: str = "--out") -
     if not same:
         raise InvalidOptionError(f"{out}: {name}: holds a run of other inputs or options ({stored.name}); pass "
                                  "--overwrite to replace it, or choose another folder")
+
+
+def refuse_or_warn(plan: Plan, fraction: float, error: TiledsmError, warning: str) -> None:
+    """Raise ``error`` when ``fraction`` (of a grid covered) is 0; add
+    ``warning`` to the plan when it is below :data:`MOSTLY_OUTSIDE`."""
+    if fraction == 0:
+        raise error
+    if fraction < MOSTLY_OUTSIDE:
+        plan.warn(warning)

@@ -38,12 +38,13 @@ def run_dsm(
 ) -> dict:
     """Views (or a synthetic scene) -> DSM products and metrics.
 
-    ``plan`` (:func:`tiledsm.plan.plan_dsm`) carries the opened views, tie
+    ``plan`` (:func:`tiledsm.dsm.plan.plan_dsm`) carries the opened views, tie
     points and lazy DSM; without it (or for a synthetic scene, made here
     first) the run plans itself. Its warnings, and a low completeness, go
     to ``metrics.json`` (``warnings``).
     """
-    from tiledsm.plan import LOW_COMPLETENESS, Limits, new_plan, plan_dsm
+    from tiledsm.dsm.plan import plan_dsm
+    from tiledsm.plan import LOW_COMPLETENESS, Limits, new_plan
 
     cluster = cluster or recipe.cluster.config()
     t_start = time.perf_counter()

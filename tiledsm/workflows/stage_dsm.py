@@ -3,7 +3,7 @@
 ``deformation`` (``pre/``, ``post/``) and ``sr_dsm`` (``hr/``, ``lr/``,
 one folder per method) make each of their DSMs as a ``pipeline: dsm``
 recipe (:class:`tiledsm.workflows.dsm.DSMRecipe`) into its own sub-folder:
-planned by :func:`tiledsm.plan.plan_dsm` (memory-fitted chunk, size
+planned by :func:`tiledsm.dsm.plan.plan_dsm` (memory-fitted chunk, size
 limits, every input opened and checked once) and written by
 :func:`tiledsm.workflows.dsm.run_dsm` (resumable fingerprinted
 ``dsm.zarr``, exports, the folder's own ``metrics.json`` and
@@ -53,10 +53,10 @@ def plan_stage_dsm(recipe: DSMRecipe, folder: Path, cluster=None, *, overwrite: 
                    limits: Limits = Limits()) -> Plan:
     """The DSM stage's plan of ``recipe`` into ``folder`` (as ``tiledsm run``
     plans a ``dsm`` recipe: workers and the folder's lock, then
-    :func:`tiledsm.plan.dsm.plan_dsm`'s checks, grid, memory-fitted chunk,
+    :func:`tiledsm.dsm.plan.plan_dsm`'s checks, grid, memory-fitted chunk,
     levels and reuse)."""
     from tiledsm.plan.core import RECIPE_NAMES, new_plan
-    from tiledsm.plan.dsm import plan_dsm
+    from tiledsm.dsm.plan import plan_dsm
 
     plan = new_plan("run", folder, cluster, limits=limits, workers=RECIPE_NAMES.workers,
                     scheduler=RECIPE_NAMES.scheduler)
@@ -118,7 +118,7 @@ def plan_unmade_dsm(folder: Path, views, h_range: tuple[float, float], recipe: D
 
     The grid is the recipe's (``like``/``bounds``), else ``default_grid``
     with the recipe's chunk, else the DSM stage's default grid of the
-    views. Levels and worker memory are :func:`tiledsm.plan.dsm_levels`'s;
+    views. Levels and worker memory are :func:`tiledsm.dsm.memory.dsm_levels`'s;
     the run plans the DSM again (tie points, chunk fitted to a worker's
     memory) once the images exist.
 
@@ -130,8 +130,8 @@ def plan_unmade_dsm(folder: Path, views, h_range: tuple[float, float], recipe: D
     import dataclasses
 
     from tiledsm.dsm import DSMParams, auto_levels, default_grid as views_grid
-    from tiledsm.plan.dsm import grid_text
-    from tiledsm.plan.memory import dsm_levels
+    from tiledsm.dsm.plan import grid_text
+    from tiledsm.dsm.memory import dsm_levels
     from tiledsm.recipes import grid_from_spec
 
     spec = recipe.grid

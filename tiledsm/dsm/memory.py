@@ -26,11 +26,10 @@ SAMPLE_SPAN = 2.0
 #: CUDA context and driver; benchmarks/results/cuda_kernel.json, peak_rss_mib)
 CUDA_CONTEXT_MIB = 210
 
-
 MIB = 2**20
-
-
 GIB = 2**30
+
+
 
 
 @dataclass(frozen=True)

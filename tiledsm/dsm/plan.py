@@ -29,9 +29,10 @@ from tiledsm.plan.core import (
     overlap_fraction,
     raster_header,
     readable_raster,
+    refuse_or_warn,
     seen_fraction,
 )
-from tiledsm.plan.memory import dsm_levels
+from tiledsm.dsm.memory import dsm_levels
 
 
 # --------------------------------------------------------------------------- DSM
@@ -299,15 +300,6 @@ def _check_seen(plan: Plan, grid, views, h_range, what: str) -> None:
                   f"(no sampled cell projects into every view); the DSM would be empty"),
         f"{what}: the grid is mostly outside the images: only {frac:.0%} of its cells are seen by every view",
     )
-
-
-def refuse_or_warn(plan: Plan, fraction: float, error: TiledsmError, warning: str) -> None:
-    """Raise ``error`` when ``fraction`` (of a grid covered) is 0; add
-    ``warning`` to the plan when it is below :data:`MOSTLY_OUTSIDE`."""
-    if fraction == 0:
-        raise error
-    if fraction < MOSTLY_OUTSIDE:
-        plan.warn(warning)
 
 
 def _check_reference(plan: Plan, path: str, grid, name: str) -> None:
