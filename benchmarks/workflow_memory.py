@@ -1,7 +1,7 @@
 """Peak memory of whole ``deformation`` and ``sr_dsm`` runs at two scene sizes (flat?).
 
 Each case is ``tiledsm run RECIPE --out DIR`` as a user types it, on the
-shipped recipe (``recipes/deformation.yaml``, ``recipes/sr_dsm.yaml``) with
+shipped recipe (``recipes/deformation.yaml``, ``recipes/experiments/sr_dsm.yaml``) with
 ``input.synth.size`` set, measured by :mod:`benchmarks._measure`: wall
 time and the peak RSS of the largest process of the whole process tree
 (the client and every dask worker; ``peak_single_rss_mib``), with the
