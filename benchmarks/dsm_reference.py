@@ -39,6 +39,9 @@ from benchmarks.dsm import TILEDSM, case_args  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 
+#: issue 35: the largest process with ``--reference`` within this factor of the same run's without it
+TARGET_RATIO = 1.1
+
 
 class RootTimeline:
     """Samples, every ``interval`` seconds, the RSS (MiB) of the process whose
@@ -132,6 +135,7 @@ def summarise(rows: list[dict]) -> dict:
         }
     a, b = out["with"]["largest_process_mib_median"], out["without"]["largest_process_mib_median"]
     out["largest_process_ratio"] = a / b if a and b else None
+    out["target"] = TARGET_RATIO
     # each pair's own ratio: the two runs of a pair share the machine's load, which moves the DSM's own peak
     pairs = {}
     for r in rows:

@@ -109,16 +109,6 @@ def _check_grid_size(grid, limits: Limits, what: str, names: FieldNames) -> None
     )
 
 
-def _store_fingerprint(path: Path) -> dict | None:
-    import zarr
-
-    try:
-        raw = zarr.open_group(str(path), mode="r").attrs.get("fingerprint")
-    except Exception as exc:  # noqa: BLE001 - any unreadable store is in the way
-        raise TiledsmError(f"{path}: an unreadable store is in the way ({exc}); rerun with --overwrite") from exc
-    return json.loads(raw) if isinstance(raw, str) else raw
-
-
 def dsm_reuse(out: Path, grid, fingerprint: dict, overwrite: bool) -> tuple[str, bool]:
     """What of ``out/dsm.zarr`` (finished) or ``out/dsm.zarr.partial`` a
     run would reuse, and whether its products will change (``withdraw``).
@@ -130,22 +120,10 @@ def dsm_reuse(out: Path, grid, fingerprint: dict, overwrite: bool) -> tuple[str,
         not ``overwrite`` (the message the run itself would give).
     """
     from tiledsm.io import ChunkStore
-    from tiledsm.provenance import check_resume
+    from tiledsm.plan.core import store_reuse
 
-    final = out / "dsm.zarr"
-    store = ChunkStore(str(final), ("height", "confidence"), grid.shape, (grid.chunk, grid.chunk))
-    total = grid.numblocks[0] * grid.numblocks[1]
-    for path, state in ((final, "finished"), (store.partial_path, "partial")):
-        if not path.exists():
-            continue
-        if overwrite:
-            return f"nothing: --overwrite discards the {state} DSM {path} and computes all {total} chunks", True
-        check_resume(_store_fingerprint(path) or {}, fingerprint, str(final))
-        if state == "finished":
-            return f"all {total} chunks of the finished DSM {final} (same inputs and parameters)", False
-        done = int(store.done().sum())
-        return f"{done} of {total} chunks of the partial DSM {path}; {total - done} to compute", True
-    return f"nothing (no DSM in {out} yet): {total} chunks to compute", True
+    store = ChunkStore(str(out / "dsm.zarr"), ("height", "confidence"), grid.shape, (grid.chunk, grid.chunk))
+    return store_reuse(store, "DSM", fingerprint, overwrite)
 
 
 def plan_dsm(plan: Plan, recipe, cluster=None, *, overwrite: bool = False, names: FieldNames = RECIPE_NAMES) -> Plan:

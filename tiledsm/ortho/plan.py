@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from tiledsm.errors import TiledsmError
 from tiledsm.ortho.recipe import OrthoRecipe
 from tiledsm.plan.core import (
     MOSTLY_OUTSIDE, RECIPE_NAMES, FieldNames, InputInfo, Plan, existing_file, readable_raster, namer,
@@ -92,32 +91,8 @@ def ortho_reuse(out: Path, ortho, fingerprint: dict, overwrite: bool) -> tuple[s
         not ``overwrite`` (the message the run itself would give).
     """
     from tiledsm.io import ChunkStore
-    from tiledsm.provenance import check_resume
+    from tiledsm.plan.core import store_reuse
 
-    final = out / ORTHO_STORE
     chunk = int(ortho.chunks[0][0]), int(ortho.chunks[1][0])
-    store = ChunkStore(str(final), ("ortho",), tuple(ortho.shape), chunk)
-    total = store.numblocks[0] * store.numblocks[1]
-    for path, state in ((final, "finished"), (store.partial_path, "partial")):
-        if not path.exists():
-            continue
-        if overwrite:
-            return f"nothing: --overwrite discards the {state} ortho {path} and computes all {total} chunks", True
-        check_resume(stored_fingerprint(path), fingerprint, str(final))
-        if state == "finished":
-            return f"all {total} chunks of the finished ortho {final} (same inputs and parameters)", False
-        done = int(store.done().sum())
-        return f"{done} of {total} chunks of the partial ortho {path}; {total - done} to compute", True
-    return f"nothing (no ortho in {out} yet): {total} chunks to compute", True
-
-
-def stored_fingerprint(path: Path) -> dict:
-    """The fingerprint a store holds (``{}`` for none: a store of an older
-    tiledsm, which no run resumes)."""
-    import zarr
-
-    try:
-        raw = zarr.open_group(str(path), mode="r").attrs.get("fingerprint")
-    except Exception as exc:  # noqa: BLE001 - any unreadable store is in the way
-        raise TiledsmError(f"{path}: an unreadable store is in the way ({exc}); rerun with --overwrite") from exc
-    return (json.loads(raw) if isinstance(raw, str) else raw) or {}
+    store = ChunkStore(str(out / ORTHO_STORE), ("ortho",), tuple(ortho.shape), chunk)
+    return store_reuse(store, "ortho", fingerprint, overwrite)

@@ -436,6 +436,59 @@ def check_earlier_run(recipe, out: Path, overwrite: bool, name: str = "--out") -
                                  "--overwrite to replace it, or choose another folder")
 
 
+def stored_fingerprint(path: Path) -> dict:
+    """The fingerprint a chunk store holds (``{}`` for none: a store of an
+    older tiledsm, which no run resumes)."""
+    import json
+
+    import zarr
+
+    try:
+        raw = zarr.open_group(str(path), mode="r").attrs.get("fingerprint")
+    except Exception as exc:  # noqa: BLE001 - any unreadable store is in the way
+        raise TiledsmError(f"{path}: an unreadable store is in the way ({exc}); rerun with --overwrite") from exc
+    return (json.loads(raw) if isinstance(raw, str) else raw) or {}
+
+
+def store_reuse(store, product: str, fingerprint: dict, overwrite: bool) -> tuple[str, bool]:
+    """What of a chunk store's finished (``store.path``) or partial
+    (``store.partial_path``) form a run would reuse, said in one line, and
+    whether the store will change (the run then withdraws its products).
+
+    Parameters
+    ----------
+    store : tiledsm.io.ChunkStore
+        The store the run writes.
+    product : str
+        What it holds, for the message (``"DSM"``, ``"ortho"``).
+    fingerprint : dict
+        The run's inputs and parameters.
+    overwrite : bool
+        ``--overwrite``: nothing is reused.
+
+    Raises
+    ------
+    FingerprintMismatchError
+        The stored product was computed from other inputs or parameters
+        and not ``overwrite`` (the message the run itself would give).
+    """
+    from tiledsm.provenance import check_resume
+
+    final = Path(store.path)
+    total = store.numblocks[0] * store.numblocks[1]
+    for path, state in ((final, "finished"), (Path(store.partial_path), "partial")):
+        if not path.exists():
+            continue
+        if overwrite:
+            return f"nothing: --overwrite discards the {state} {product} {path} and computes all {total} chunks", True
+        check_resume(stored_fingerprint(path), fingerprint, str(final))
+        if state == "finished":
+            return f"all {total} chunks of the finished {product} {final} (same inputs and parameters)", False
+        done = int(store.done().sum())
+        return f"{done} of {total} chunks of the partial {product} {path}; {total - done} to compute", True
+    return f"nothing (no {product} in {final.parent} yet): {total} chunks to compute", True
+
+
 def refuse_or_warn(plan: Plan, fraction: float, error: TiledsmError, warning: str) -> None:
     """Raise ``error`` when ``fraction`` (of a grid covered) is 0; add
     ``warning`` to the plan when it is below :data:`MOSTLY_OUTSIDE`."""
