@@ -20,7 +20,7 @@ per-cell height lines), sampling (image interpolation), cost (ZNCC, cost
 volume), aggregation (semi-global paths), wta (winner-take-all, sub-step
 refinement, masks), other (image reading, decimation, search band, the
 Python between). ``--kernels`` runs the task once per matching kernel
-(:data:`tiledsm.match.sgvll.KERNELS`, when the package has them) in the
+(:data:`tiledsm.match.kernels.KERNELS`, when the package has them) in the
 same process, so their ratio is measured under the same load; the kernel's
 own report (candidates per cell, timings) is kept too.
 

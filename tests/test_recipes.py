@@ -83,6 +83,29 @@ def test_relative_paths_resolved_and_round_trip(tmp_path):
     assert yaml.safe_load(out.read_text())["grid"]["chunk"] == 512
 
 
+def test_recipes_load_without_the_matching_kernels():
+    """Reading and checking a recipe imports neither numba nor OpenCV: a
+    command's option and recipe errors come before the kernels load."""
+    import subprocess
+    import sys
+
+    code = ("import sys, tiledsm.recipes as r; r.MatchSpec(params={'window': 7});"
+            "print(sorted(m for m in ('numba', 'cv2', 'tiledsm.match.sgvll') if m in sys.modules))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "[]"
+
+
+def test_unknown_kernel_named_with_the_registered_ones():
+    """The ``kernel`` validator loads the registry when a kernel is named."""
+    from pydantic import ValidationError
+
+    from tiledsm.match.params import SGVLLParams
+
+    with pytest.raises(ValidationError, match="unknown matching kernel 'fastest'; known: cuda, fast, reference"):
+        SGVLLParams(kernel="fastest")
+    assert SGVLLParams(kernel="reference").kernel == "reference"
+
+
 def test_misspelled_matching_parameter_named_with_the_valid_ones(tmp_path):
     """Issue 13: a misspelled matching parameter is one recipe error naming
     it and listing the valid names (not a TypeError deep in the run)."""

@@ -21,7 +21,7 @@ import yaml
 from pydantic import AfterValidator, BaseModel, Field, ValidationError, field_validator, model_validator
 
 from tiledsm.errors import RecipeError
-from tiledsm.match.sgvll import SGVLLParams
+from tiledsm.match.params import SGVLLParams
 from tiledsm.spec import StrictModel, option  # the base lives apart: stage parameter models share it
 
 __all__ = [

@@ -2,7 +2,7 @@
 metadata that names a field's command-line option (:func:`option`).
 
 A module of its own, importing nothing of tiledsm, so that the stages'
-parameter models (:class:`tiledsm.match.sgvll.SGVLLParams`...) and the
+parameter models (:class:`tiledsm.match.params.SGVLLParams`...) and the
 recipe sections that hold them (:mod:`tiledsm.recipes`) share one base
 without an import circle.
 """

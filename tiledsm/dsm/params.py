@@ -17,7 +17,7 @@ from typing import Optional
 from pydantic import Field
 
 from tiledsm.match.pyramid import SearchParams
-from tiledsm.match.sgvll import SGVLLParams
+from tiledsm.match.params import SGVLLParams
 from tiledsm.recipes import ChunkSide, GridSpec, MatchSetup, MatchSpec
 
 __all__ = ["DSMParams"]

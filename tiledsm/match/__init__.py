@@ -4,30 +4,46 @@ validates the cost and the aggregation on Middlebury lives with its test,
 ``tests/match/stereo.py``).
 
 Everything here works on in-memory numpy blocks; the dask orchestration
-lives in :mod:`tiledsm.dsm`.
+lives in :mod:`tiledsm.dsm`. The names below are imported from their
+modules when first used: the parameter models (:mod:`.params`) load
+without numba and OpenCV, so recipes and option errors come at once.
 """
 
-from tiledsm.match.cost import mean_zncc_cost, zncc_cost
-from tiledsm.match.sgm import aggregate, remove_speckles, winner_take_all
-from tiledsm.match.pyramid import SearchParams, downsample, search_from_coarse
-from tiledsm.match.sgvll import SGVLLParams, height_step, match_block
-from tiledsm.match.tiepoints import height_range_from_tiepoints, match_tiepoints, relative_correction
-from tiledsm.match.triangulate import triangulate
+from __future__ import annotations
 
-__all__ = [
-    "zncc_cost",
-    "mean_zncc_cost",
-    "aggregate",
-    "winner_take_all",
-    "remove_speckles",
-    "SGVLLParams",
-    "height_step",
-    "match_block",
-    "SearchParams",
-    "downsample",
-    "search_from_coarse",
-    "triangulate",
-    "match_tiepoints",
-    "height_range_from_tiepoints",
-    "relative_correction",
-]
+import importlib
+from typing import Any
+
+#: public name -> the module that defines it
+_HOMES = {
+    "zncc_cost": "cost",
+    "mean_zncc_cost": "cost",
+    "aggregate": "sgm",
+    "winner_take_all": "sgm",
+    "remove_speckles": "sgm",
+    "SGVLLParams": "params",
+    "height_step": "sgvll",
+    "match_block": "sgvll",
+    "SearchParams": "pyramid",
+    "downsample": "pyramid",
+    "search_from_coarse": "pyramid",
+    "triangulate": "triangulate",
+    "match_tiepoints": "tiepoints",
+    "height_range_from_tiepoints": "tiepoints",
+    "relative_correction": "tiepoints",
+}
+
+__all__ = list(_HOMES)
+
+
+def __getattr__(name: str) -> Any:
+    home = _HOMES.get(name)
+    if home is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{home}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -1,8 +1,10 @@
 """The registry of SGVLL matching kernels: implementations of the heavy
 steps of :func:`tiledsm.match.sgvll.match_block` (cost volume and
 semi-global aggregation), chosen by :attr:`SGVLLParams.kernel
-<tiledsm.match.sgvll.SGVLLParams>`. The kernels themselves are registered
-by :mod:`tiledsm.match.sgvll`."""
+<tiledsm.match.params.SGVLLParams>`, and the three built in: ``"fast"``
+(:mod:`tiledsm.match.sweep`), ``"reference"``
+(:mod:`tiledsm.match.sweep_reference`) and ``"cuda"``
+(:mod:`tiledsm.match.cuda_kernel`)."""
 
 from __future__ import annotations
 
@@ -74,3 +76,20 @@ def register_kernel(name: str, kernel: MatchKernel) -> None:
     if name in KERNELS:
         raise ValueError(f"matching kernel {name!r} is already registered")
     KERNELS[name] = kernel
+
+
+def _register_builtin() -> None:
+    # imported here, not at the top: the dataclass and the registry load
+    # without numba; the implementations register once, on first import
+    from tiledsm.match import cuda_kernel
+    from tiledsm.match.sgm import aggregate, aggregate_best
+    from tiledsm.match.sweep import cost_volume
+    from tiledsm.match.sweep_reference import cost_volume_reference
+
+    register_kernel("reference", MatchKernel(cost_volume_reference, aggregate))
+    register_kernel("fast", MatchKernel(cost_volume, functools.partial(aggregate, fast=True), best=aggregate_best))
+    register_kernel("cuda", MatchKernel(cuda_kernel.cost_volume, cuda_kernel.aggregate, on_device=True,
+                                        best=cuda_kernel.best, check_device=cuda_kernel.check_device))
+
+
+_register_builtin()
