@@ -19,7 +19,9 @@ command's own code path), and reports:
   graph's wall during which 2, 1 or 0 of its tasks run (both cores
   busy or not);
 - the process's CPU seconds (``getrusage`` of the child: its native
-  threads too, GDAL's and blosc's) and CPU / wall.
+  threads too, GDAL's and blosc's), CPU / wall, and the CPU seconds of its
+  threads by name at the end (the workers, zarr's I/O loop, native
+  threads; threads that ended together).
 
 Writes ``benchmarks/results/dsm_phases.json``.
 """
@@ -93,8 +95,28 @@ def _child(events_json: str, argv: list[str]) -> None:
     ru = resource.getrusage(resource.RUSAGE_SELF)
     Path(events_json).write_text(json.dumps({
         "code": code, "cli_start": cli_start, "cli_end": time.perf_counter() - t0,
-        "cpu_s": ru.ru_utime + ru.ru_stime, "events": events,
+        "cpu_s": ru.ru_utime + ru.ru_stime, "threads_cpu_s": thread_cpu(), "events": events,
     }))
+
+
+def thread_cpu() -> dict[str, float]:
+    """CPU seconds of this process's live threads by name (a pool's
+    threads together; threads without a Python name are native: GDAL's,
+    blosc's). Threads that ended are not listed: the process's CPU less
+    these is theirs."""
+    import re
+
+    names = {t.native_id: t.name for t in threading.enumerate()}
+    tick = os.sysconf("SC_CLK_TCK")
+    out: dict[str, float] = {}
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            fields = Path(f"/proc/self/task/{tid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:  # ended meanwhile
+            continue
+        name = re.sub(r"[_-]\d+$", "", names.get(int(tid), "native"))
+        out[name] = round(out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / tick, 2)
+    return out
 
 
 def _span(events: list[dict], tag: str) -> tuple[float, float] | None:
@@ -170,6 +192,10 @@ def table(case: str, rows: list[dict], graph: dict, wall: float, cpu: float) -> 
     busy = graph["share_of_span_with_tasks_running"]
     lines.append(f"Tasks run over {graph['tasks_span_s']:.1f} s: " + ", ".join(
         f"{k} running {100 * v:.0f} %" for k, v in busy.items()))
+    threads = graph.get("threads_cpu_s", {})
+    if threads:
+        lines += ["", "Process CPU by thread (s): " + ", ".join(f"{k} {v:.1f}" for k, v in
+                                                              sorted(threads.items(), key=lambda kv: -kv[1]))]
     return "\n".join(lines)
 
 
@@ -204,6 +230,8 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"{' '.join(argv_child)} failed:\n{done.stderr[-3000:]}")
         doc = json.loads(events.read_text())
         rows, graph = phase_rows(doc, wall)
+        threads = doc["threads_cpu_s"]
+        graph["threads_cpu_s"] = {**threads, "ended threads": round(doc["cpu_s"] - sum(threads.values()), 2)}
         tables.append(table(case, rows, graph, wall, doc["cpu_s"]))
         print(tables[-1], flush=True)
         out_rows.append({"case": case, **{k: v for k, v in facts.items() if k in ("data", "reference")},
