@@ -9,7 +9,8 @@ the package of commit ``REV`` (``git archive`` into the run folder, first
 on ``PYTHONPATH``) and with this tree's package, in turn: B A B A ...; each
 pair's ratio A/B is taken on two runs minutes apart, so a drift of the
 machine's speed moves both. The table gives each side's median wall time
-and CPU seconds, the median and range of the pair ratios, and checks
+and CPU seconds and its largest process's peak resident memory, the
+median and range of the pair ratios, and checks
 that both sides made the same DSM (NMAD and completeness against the
 reference, scored apart from the timed command as ``benchmarks/dsm.py``
 scores it). One uncounted run of each side comes first (``--warmup``:
@@ -47,7 +48,8 @@ def run_once(dsm_args: list[str], reference: str, out: Path, src: Path, workers:
     if not m.ok:
         raise SystemExit(f"{' '.join(argv)} failed (PYTHONPATH={src}); see {out.with_suffix('.log')}")
     ref, _ = score_run(out, reference, workers)
-    return {"wall_s": m.wall_s, "cpu_s": m.cpu_s, "nmad_m": ref.get("nmad"), "completeness": ref.get("completeness")}
+    return {"wall_s": m.wall_s, "cpu_s": m.cpu_s, "largest_process_mib": m.peak_single_rss_mib,
+            "nmad_m": ref.get("nmad"), "completeness": ref.get("completeness")}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -86,13 +88,17 @@ def main(argv: list[str] | None = None) -> int:
             "b_wall_s_median": statistics.median(r["wall_s"] for r in runs["B"]),
             "a_cpu_s_median": statistics.median(r["cpu_s"] for r in runs["A"]),
             "b_cpu_s_median": statistics.median(r["cpu_s"] for r in runs["B"]),
+            "a_largest_process_mib_median": statistics.median(r["largest_process_mib"] for r in runs["A"]),
+            "b_largest_process_mib_median": statistics.median(r["largest_process_mib"] for r in runs["B"]),
             "ratio_wall_median": statistics.median(ratios), "ratio_wall_min": min(ratios), "ratio_wall_max": max(ratios),
             "same_scores": same, "runs": runs,
         })
-    table = ["| case | pairs | this tree: wall (s), CPU (s) | baseline: wall (s), CPU (s) | wall ratio A/B, median (range) | same NMAD and completeness |",
+    table = ["| case | pairs | this tree: wall (s), CPU (s), largest process (MiB) | baseline: wall (s), CPU (s), "
+             "largest process (MiB) | wall ratio A/B, median (range) | same NMAD and completeness |",
              "|---|---|---|---|---|---|"]
-    table += [f"| {r['case']} | {r['pairs']} | {r['a_wall_s_median']:.1f}, {r['a_cpu_s_median']:.1f} | "
-              f"{r['b_wall_s_median']:.1f}, {r['b_cpu_s_median']:.1f} | {r['ratio_wall_median']:.3f} "
+    table += [f"| {r['case']} | {r['pairs']} | {r['a_wall_s_median']:.1f}, {r['a_cpu_s_median']:.1f}, "
+              f"{r['a_largest_process_mib_median']:.0f} | {r['b_wall_s_median']:.1f}, {r['b_cpu_s_median']:.1f}, "
+              f"{r['b_largest_process_mib_median']:.0f} | {r['ratio_wall_median']:.3f} "
               f"({r['ratio_wall_min']:.3f}-{r['ratio_wall_max']:.3f}) | {'yes' if r['same_scores'] else 'NO'} |" for r in rows]
     print("\n".join(table))
     write_result(Path(args.json), "dsm_paired", " ".join([Path(sys.executable).name, *sys.argv]), rows,

@@ -19,8 +19,9 @@ Usage::
 
     nice -n 10 .venv/bin/python benchmarks/workflow_memory.py --deformation-sizes 1024 4096 --sr-sizes 512 2048
 
-``--append`` keeps the rows already in the JSON for cases not run now (a
-size measured by a later, separate run). Writes
+``--append`` keeps the rows already in the JSON of the pipelines not run
+now (one pipeline measured again by a later, separate run; a pipeline run
+now keeps only its new sizes, so its ratio is that of this run). Writes
 ``benchmarks/results/workflow_memory.json`` and prints a table;
 ``ratio`` is the larger size's largest-process peak over the smaller's
 (target: <= 1.25).
@@ -83,7 +84,7 @@ def main(argv=None) -> int:
     p.add_argument("--timeout", type=float, default=3600.0, help="seconds per run")
     p.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "workflow_memory.json")
     p.add_argument("--append", action="store_true",
-                   help="keep the rows of --json for the cases not run now (e.g. one more size measured later)")
+                   help="keep the rows of --json for the pipelines not run now (e.g. one pipeline measured later)")
     args = p.parse_args(argv)
 
     rows = []
@@ -109,9 +110,9 @@ def main(argv=None) -> int:
             print((folder / "run.out").read_text()[-3000:])
     earlier, before = [], ""
     if args.append and args.json.exists():
-        ran = {(r["pipeline"], r["size"]) for r in rows}
+        ran = {r["pipeline"] for r in rows}
         doc = json.loads(args.json.read_text())
-        earlier = [r for r in doc["rows"] if (r["pipeline"], r["size"]) not in ran]
+        earlier = [r for r in doc["rows"] if r["pipeline"] not in ran]
         before = doc["command"] + "; then "
     rows = earlier + rows
     ratios = {}
