@@ -600,6 +600,10 @@ def memory_page() -> str:
     sm = ref["summary"]
     ref_rows = [[side, ", ".join(f"{v:.0f}" for v in sm[side]["largest_process_mib"]) + " MiB",
                  f"{sm[side]['wall_s_median']:.0f} s"] for side in ("without", "with")]
+    trace = json.loads((RESULTS / "client_trace.json").read_text())
+    trace_rows = [[f"{r['size']} px", {"glibc": "glibc's defaults", "fixed": "as `tiledsm` sets it"}[r["allocator"]],
+                   f"{r['client_peak_mib']:.0f} MiB", " > ".join(f"`{w}`" for w in r["peak_where"])]
+                  for r in trace["rows"]]
     return (
         "# Memory\n\nGenerated from `benchmarks/results/*.json` when the site is built (the commands are in each "
         "file's section of [Results files](results.md)), on the project's shared 2-core machine.\n\n"
@@ -614,7 +618,12 @@ def memory_page() -> str:
         f"alternating pairs ([dsm_reference.json](results.md#dsm_referencejson), {ref['when']}): the largest "
         f"process of each run, and the ratio of the medians, {sm['largest_process_ratio']:.3f} (target: within "
         f"{sm['target']:.2f}x).\n\n"
-        + _table(["`--reference`", "largest process, per run", "wall, median"], ref_rows) + "\n"
+        + _table(["`--reference`", "largest process, per run", "wall, median"], ref_rows)
+        + "\n\n## Freed memory goes back\n\nThe deformation recipe's client process (its own memory, sampled "
+        "every 0.2 s, and where its main thread was at the peak) with glibc's allocator as it comes and with the "
+        "thresholds every command sets ([why](../decisions/allocator.md); "
+        f"[client_trace.json](results.md#client_tracejson), {trace['when']}):\n\n"
+        + _table(["deformation scene", "allocator", "client peak", "where"], trace_rows) + "\n"
     )
 
 

@@ -11,8 +11,9 @@ stay in the process after they are freed. Each phase's transient then adds
 to the resident memory instead of replacing the previous one's.
 
 Measured on the deformation recipe at ``input.synth.size: 1024`` (2 cores,
-the client process sampled every 0.2 s): its largest resident memory 879 MiB
-with glibc's defaults, 650 MiB with a fixed 1 MiB mmap and trim threshold
+the client process sampled every 0.2 s, ``benchmarks/client_trace.py``):
+its largest resident memory 1060 MiB with glibc's defaults, during the COG
+export, and 649 MiB with a fixed 1 MiB mmap and trim threshold
 (``MALLOC_MMAP_THRESHOLD_=1048576 MALLOC_TRIM_THRESHOLD_=1048576``), which
 is what :func:`return_freed_memory` sets from inside the process.
 """
