@@ -423,6 +423,8 @@ def compare_dsms(ref, other, out_dir: str | Path, spec: CompareSpec = CompareSpe
         attrs={"ref": pair.ref.attrs["source"], "other": pair.other.attrs["source"], "coregistration": json.dumps(jsonable(coreg.to_dict()))},
     )
     ds = ds.rio.write_crs(pair.crs).rio.write_transform(pair.transform)
+    for var in ds.data_vars.values():  # no fill-value test of each chunk (a NaN-aware compare of the whole chunk)
+        var.encoding["write_empty_chunks"] = True
 
     out.mkdir(parents=True, exist_ok=True)
     # a temporary's name (tiledsm.io.atomic.TEMPORARY): a killed run's staging is swept by the next run's lock
