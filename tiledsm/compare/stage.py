@@ -28,8 +28,9 @@ After the fit, **one pass** (one ``dask.compute``) writes ``dh.zarr`` and,
 from the same ``dh`` blocks, reduces the statistics (per-block packed
 histograms merged by ``da.reduction``) and gathers the strided arrays the
 figures draw; ``dh.tif`` is then converted from the store one row of chunks
-at a time, in a thread, while the figures are drawn. No process holds a grid-sized array: memory per task is a few
-blocks and the client holds one row of chunks, whatever the grid size.
+at a time, in a thread, while the figures are drawn. No process holds a
+grid-sized array: memory per task is a few blocks and the client holds one
+row of chunks, whatever the grid size.
 Computation runs on the current dask scheduler (wrap the call in
 :func:`tiledsm.cluster.compute_context`).
 """

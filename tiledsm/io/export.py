@@ -124,8 +124,9 @@ class OverviewWriter:
     (:func:`tiledsm.io.overviews.average_2x2`) into one uncompressed GTiff
     per level (``paths[k]``: factor ``2**(k+1)``), as the grid is written.
 
-    Strips must start on rows divisible by ``2**len(paths)`` and have that
-    many rows (the last one too): each level then halves whole cell pairs.
+    Strips must start on rows divisible by ``2**len(paths)`` and hold a
+    multiple of that many rows (the last one too), and the columns be a
+    multiple of it: each level then halves whole cell pairs.
     Use as a context manager (the files are closed on exit).
     """
 
