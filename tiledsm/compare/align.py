@@ -68,7 +68,9 @@ def open_dsm(path: str | Path, chunks: int = 1024) -> xr.DataArray:
         arr = open_raster_product(path)
     else:
         try:
-            arr = rioxarray.open_rasterio(path, chunks={"band": 1, "y": chunks, "x": chunks}, masked=True)
+            # lock=False: one file handle per thread instead of rioxarray's process-wide read lock, so the
+            # workers decode their blocks' tiles in parallel (the lock serialised every read of the pass)
+            arr = rioxarray.open_rasterio(path, chunks={"band": 1, "y": chunks, "x": chunks}, masked=True, lock=False)
         except Exception as exc:  # rasterio raises several types
             raise InputFileError(f"{path}: not a readable raster ({exc})") from exc
         if arr.sizes.get("band", 1) != 1:

@@ -35,7 +35,7 @@ _PROGRESS = "_progress"
 def _clean_for_zarr(ds: xr.Dataset) -> xr.Dataset:
     ds = ds.copy()
     for v in ds.variables.values():
-        keep = {k: v.encoding[k] for k in ("compressors", "filters") if k in v.encoding}
+        keep = {k: v.encoding[k] for k in ("compressors", "filters", "write_empty_chunks") if k in v.encoding}
         v.encoding = keep
     return ds
 
