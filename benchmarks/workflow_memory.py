@@ -17,7 +17,7 @@ take minutes per 2048² image on two cores).
 
 Usage::
 
-    nice -n 10 .venv/bin/python benchmarks/workflow_memory.py --deformation-sizes 1024 4096 --sr-sizes 512 2048
+    nice -n 10 .venv/bin/python benchmarks/workflow_memory.py --deformation-sizes 1024 4096 --sr-sizes 1024 4096
 
 ``--append`` keeps the rows already in the JSON of the pipelines not run
 now (one pipeline measured again by a later, separate run; a pipeline run
@@ -76,7 +76,7 @@ def _plan_lines(recipe: Path, out: Path) -> dict:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--deformation-sizes", type=int, nargs="*", default=[1024, 4096])
-    p.add_argument("--sr-sizes", type=int, nargs="*", default=[512, 2048])
+    p.add_argument("--sr-sizes", type=int, nargs="*", default=[1024, 4096])
     p.add_argument("--sr-models", nargs="+", default=["dsm_upscale", "bicubic", "srcnn"])
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--with-displacement", action="store_true")

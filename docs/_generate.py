@@ -540,6 +540,11 @@ SPEED = [
     ("`tiledsm dsm`, synthetic 4096² scene, 2 threads: wall (s)", "dsm.json", ["rows", {"case": "synth4096"}, "measurement", "wall_s"], "{:.1f}"),
     ("the same: Mcells/s of wall time", "dsm.json", ["rows", {"case": "synth4096"}, "mcells_per_s_wall"], "{:.3f}"),
     ("`tiledsm dsm`, `s2p_pair` on s2p's grid, 2 threads: wall (s)", "dsm.json", ["rows", {"case": "s2p"}, "measurement", "wall_s"], "{:.1f}"),
+    ("`tiledsm dsm`, synthetic 16384² scene, 2 threads: wall (s)", "dsm_paired.json",
+     ["rows", {"case": "synth16384"}, "a_wall_s_median"], "{:.1f}"),
+    ("the same: largest process (MiB)", "dsm_paired.json", ["rows", {"case": "synth16384"}, "a_largest_process_mib_median"], "{:.0f}"),
+    ("the same: wall time over the baseline's in the same run (`baseline` in the file)", "dsm_paired.json",
+     ["rows", {"case": "synth16384"}, "ratio_wall_median"], "{:.3f}"),
     ("`s2p_pair`, full overlap, 2 workers each: tiledsm wall (s)", "blunders.json",
      ["rows", {"tool": "tiledsm 0.1.0"}, "measurement", "wall_s"], "{:.1f}"),
     ("s2p 1.0b25, the same pair and workers: wall (s; its run is kept from an earlier hour, see `when`)",
@@ -648,6 +653,27 @@ def headline_table(spec: list[tuple[str, str, list, str]]) -> str:
     return _table(["measured", "value", "results file"], rows)
 
 
+def compare_table() -> str:
+    """``tiledsm compare`` beside xdem's Nuth & Kaab on the same files
+    (``compare_8192.json``): each tool's wall time, xdem's fit + apply
+    alone, the ratio and both processes' peaks."""
+    doc = json.loads((RESULTS / "compare_8192.json").read_text())
+    rows = []
+    for r in doc["rows"]:
+        ours, xdem = r["tiledsm"]["measurement"], r.get("xdem")
+        if not xdem:
+            continue
+        rows.append([f"{r['size']}² on {r['workers']} {r['scheduler']}", f"{ours['wall_s']:.1f} s, {ours['peak_single_rss_mib']:.0f} MiB",
+                     f"{xdem['measurement']['wall_s']:.1f} s, {xdem['measurement']['peak_single_rss_mib']:.0f} MiB",
+                     f"{xdem['fit_apply_s']:.1f} s", f"{ours['wall_s'] / xdem['fit_apply_s']:.2f}x"])
+    load = ", ".join(f"{x:.1f}" for x in doc["host"]["load_avg"])
+    return (f"`tiledsm compare` and xdem 0.2.3's `NuthKaab` (fit, apply, save) on the same two GeoTIFFs, in one "
+            f"run ([compare_8192.json](results.md#compare_8192json), {doc['when']}, load averages {load}; "
+            f"the fastest of each tool's runs):\n\n"
+            + _table(["grid", "tiledsm: wall, largest process", "xdem: wall, largest process", "xdem fit + apply",
+                      "tiledsm / xdem fit + apply"], rows) + "\n")
+
+
 def headline_pages() -> dict[str, str]:
     return {
         f"{GENERATED}/accuracy.md": "# Accuracy\n\nGenerated from `benchmarks/results/*.json` when the site is built "
@@ -657,6 +683,7 @@ def headline_pages() -> dict[str, str]:
         f"{GENERATED}/speed.md": "# Speed\n\nGenerated from `benchmarks/results/*.json` when the site is built, on "
         "the project's 2-core machine (its speed drifts by 30-50 % within an hour: compare runs of one "
         "session only; `benchmarks/dsm_paired.py` measures a change in alternating pairs).\n\n"
-        + headline_table(SPEED) + "\n## On a GPU machine\n\n" + gpu_table(),
+        + headline_table(SPEED) + "\n## Comparing two DSMs\n\n" + compare_table()
+        + "\n## On a GPU machine\n\n" + gpu_table(),
         f"{GENERATED}/memory.md": memory_page(),
     }
