@@ -68,6 +68,8 @@ class Measurement:
     cpu_s_reaped : float
         From ``getrusage(RUSAGE_CHILDREN)``: exact, but only for descendants whose parents waited
         for them (a multiprocessing forkserver orphaned at exit takes its workers' time with it).
+    sys_s_reaped : float
+        The system (kernel) part of ``cpu_s_reaped``: page faults, mapping and unmapping memory, I/O.
     cpu_s_sampled : float
         Sum over every process seen in the tree of its last sampled utime + stime: robust to
         re-parenting, short by at most ``interval`` per process.
@@ -95,6 +97,7 @@ class Measurement:
     wall_s: float
     cpu_s: float
     cpu_s_reaped: float
+    sys_s_reaped: float
     cpu_s_sampled: float
     peak_rss_mib: float
     peak_pss_mib: float | None
@@ -310,6 +313,7 @@ def measure(
         wall_s=wall,
         cpu_s=max(cpu_reaped, cpu_sampled),
         cpu_s_reaped=cpu_reaped,
+        sys_s_reaped=after.ru_stime - before.ru_stime,
         cpu_s_sampled=cpu_sampled,
         peak_rss_mib=peak_rss,
         peak_pss_mib=peak_pss,

@@ -136,6 +136,7 @@ def write_dsm_products(
     Returns timings (with ``levels``: each staged level's chunks and how
     many were reused).
     """
+    from tiledsm.allocator import heap_kept
     from tiledsm.dsm.stages import LEVELS_DIR, stage_reports
     from tiledsm.io import write_cog, write_resumable
     from tiledsm.io.atomic import remove_path
@@ -146,7 +147,8 @@ def write_dsm_products(
     chunks: dict = {}
     if overwrite:
         remove_path(out / LEVELS_DIR)
-    with compute_context(cluster) as client:
+    # the matching tasks reuse their temporaries from the heaps; the exports after it start trimmed
+    with compute_context(cluster) as client, heap_kept():
         write_resumable(
             ds,
             out / "dsm.zarr",
