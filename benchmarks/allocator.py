@@ -44,6 +44,7 @@ def run_once(threshold: int, dsm_args: list[str], reference: str, out: Path, wor
             *scheduler_args("threads", workers, out.parent), "--no-progress"]
     # a MALLOC_* variable would switch the thresholds off (the user's setting wins)
     env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+    env["PYTHONPATH"] = str(REPO)  # this tree's package, whatever the venv has installed
     m = measure(argv, cwd=out.parent, env=env, log=out.with_suffix(".log"))
     if not m.ok:
         raise SystemExit(f"tiledsm dsm failed with threshold {threshold}; see {out.with_suffix('.log')}")

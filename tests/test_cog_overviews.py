@@ -1,6 +1,6 @@
-"""COG overviews averaged while the grid streams (``write_cog(stream_overviews=True)``)
-against GDAL's own (the oracle: the same ``write_cog`` letting GDAL's ``COG``
-driver compute them), and :func:`tiledsm.io.overviews.average_2x2` against
+"""COG overviews averaged while the grid streams (``write_cog``'s default)
+against GDAL's own (the oracle: the same ``write_cog`` with ``overviews="gdal"``,
+GDAL's ``COG`` driver computing them), and :func:`tiledsm.io.overviews.average_2x2` against
 numpy's NaN mean."""
 
 from __future__ import annotations
@@ -46,8 +46,8 @@ def _levels(path) -> list[np.ndarray]:
 ])
 def test_streamed_overviews_equal_gdals_bit_for_bit(tmp_path, rows, cols, chunk, blocksize):
     da = _grid(rows, cols, chunk)
-    gdal = write_cog(da, tmp_path / "gdal.tif", blocksize=blocksize)
-    ours = write_cog(da, tmp_path / "ours.tif", blocksize=blocksize, stream_overviews=True)
+    gdal = write_cog(da, tmp_path / "gdal.tif", blocksize=blocksize, overviews="gdal")
+    ours = write_cog(da, tmp_path / "ours.tif", blocksize=blocksize)
     assert sorted(os.listdir(tmp_path)) == ["gdal.tif", "ours.tif"]  # no source, VRT or level left
     with rasterio.open(gdal) as g, rasterio.open(ours) as o:
         assert o.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
@@ -62,11 +62,11 @@ def test_streamed_overviews_equal_gdals_bit_for_bit(tmp_path, rows, cols, chunk,
 
 def test_sizes_gdal_floors_fall_back_to_gdals_overviews(tmp_path):
     """1031 x 997 cells: GDAL's levels are floor(size / factor) and not 2 x 2
-    means, so the overviews are left to GDAL (same file as without the flag)."""
+    means, so the overviews are left to GDAL (the same file as with ``overviews="gdal"``)."""
     da = _grid(1031, 997, 256, seed=1)
     assert not streamable_overviews((1031, 997), np.float32, cog_overview_count((1031, 997), 256))
-    a = write_cog(da, tmp_path / "a.tif", blocksize=256)
-    b = write_cog(da, tmp_path / "b.tif", blocksize=256, stream_overviews=True)
+    a = write_cog(da, tmp_path / "a.tif", blocksize=256, overviews="gdal")
+    b = write_cog(da, tmp_path / "b.tif", blocksize=256)
     assert a.read_bytes() == b.read_bytes()
 
 

@@ -6,7 +6,7 @@ graph and no worker is involved) through :func:`tiledsm.io.write_cog`, with
 GDAL's compression threads on every core (the workers are idle by then) and
 its block cache bounded, so the process never holds more than a row of
 chunks plus ``cache_mib`` whatever the grid size. The overviews are averaged
-from the rows as they stream by (``stream_overviews``: the values GDAL
+from the rows as they stream by (:func:`tiledsm.io.write_cog`: the values GDAL
 computes, without reading the grid again), and the tiles are DEFLATE level
 :data:`DH_DEFLATE_LEVEL`.
 """
@@ -50,7 +50,7 @@ def cog_from_store(dh: xr.DataArray, path: str | os.PathLike, *, threads: str | 
     from tiledsm.io import write_cog
 
     with rasterio.Env(GDAL_NUM_THREADS=str(threads), GDAL_CACHEMAX=int(cache_mib)), dask.config.set(scheduler="threads"):
-        return write_cog(dh, path, level=DH_DEFLATE_LEVEL, stream_overviews=True)
+        return write_cog(dh, path, level=DH_DEFLATE_LEVEL)
 
 
 def jsonable(obj):

@@ -44,7 +44,6 @@ import os
 import shutil
 import time
 import uuid
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache, partial
 from pathlib import Path
@@ -74,6 +73,7 @@ from tiledsm.compare.stable import exclusion_mask, exclusion_mask_lazy, read_pol
 from tiledsm.compare.stats import HistogramStats, slope_class_labels
 from tiledsm.compare.terrain import metric_steps, slope_percent
 from tiledsm.errors import InputFileError, NoOverlapError
+from tiledsm.io.export import exports_alongside
 
 __all__ = ["CompareResult", "compare_dsms", "difference_lazy", "fit_coregistration"]
 
@@ -441,13 +441,6 @@ def compare_dsms(ref, other, out_dir: str | Path, spec: CompareSpec = CompareSpe
     return CompareResult(out, coreg, metrics, {k: out / Path(v).name for k, v in products.items()})
 
 
-def _timed(fn, *args) -> float:
-    """Seconds ``fn(*args)`` took."""
-    t = time.perf_counter()
-    fn(*args)
-    return time.perf_counter() - t
-
-
 def _export_cog(staging: Path) -> None:
     """``dh.tif`` converted from the staged ``dh.zarr``."""
     from tiledsm.compare.export import cog_from_store
@@ -538,8 +531,7 @@ def _write_products(ds, pair, coreg, geoms, spec: CompareSpec, output: CompareOu
     # ---- exports: the COG (GDAL and compiled kernels, mostly without the GIL) in a thread while this
     # one draws the figures (matplotlib, mostly with it): the two overlap instead of adding up
     figures = {}
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tiledsm-cog") as pool:
-        cog = pool.submit(_timed, _export_cog, staging) if output.cog else None
+    with exports_alongside({"cog": lambda: _export_cog(staging)} if output.cog else {}) as seconds:
         t3 = time.perf_counter()
         if output.quicklook or output.report:
             from tiledsm.compare.report import make_figures
@@ -550,10 +542,9 @@ def _write_products(ds, pair, coreg, geoms, spec: CompareSpec, output: CompareOu
                     (staging / f"{name}.png").write_bytes(png)
                     products[name] = staging / f"{name}.png"
         t_fig = time.perf_counter() - t3
-        t_cog = 0.0
-        if cog is not None:
-            t_cog = cog.result()
-            products["dh_tif"] = staging / "dh.tif"
+    t_cog = seconds.get("cog", 0.0)
+    if output.cog:
+        products["dh_tif"] = staging / "dh.tif"
     metrics["timings_s"] = {
         "fit": t_fit, "difference_statistics_zarr": t_pass, "cog": t_cog,
         "figures_report": t_fig, "total": time.perf_counter() - t0,

@@ -49,7 +49,7 @@ from tiledsm.io.grids import grid_like
 from tiledsm.io.scenes import open_scene, scene_rpc
 from tiledsm.io.atomic import atomic_path, withdraw
 from tiledsm.io.stores import write_zarr, open_product, open_raster_product, ChunkStore, create_store, write_blocks, write_resumable
-from tiledsm.io.export import write_cog, write_geotiff_with_rpc
+from tiledsm.io.export import exports_alongside, write_cog, write_geotiff_with_rpc
 
 __all__ = [
     "find_camera",

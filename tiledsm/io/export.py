@@ -6,7 +6,10 @@ import contextlib
 import json
 import math
 import os
+import time
 import warnings
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Mapping
 
@@ -16,7 +19,7 @@ import xarray as xr
 
 from tiledsm.geometry.rpc import RPC
 from tiledsm.io.atomic import remove_path, atomic_path
-from tiledsm.io.overviews import cog_overview_count, streamable_overviews
+from tiledsm.io.overviews import average_2x2, cog_overview_count, streamable_overviews
 from tiledsm.io.scenes import scene_rpc
 
 
@@ -149,8 +152,6 @@ class OverviewWriter:
         """Average ``strip`` (rows ``r0 : r0 + len(strip)`` of the grid) into every level."""
         from rasterio.windows import Window
 
-        from tiledsm.io.overviews import average_2x2
-
         level = strip
         for k, dst in enumerate(self._dst, start=1):
             level = average_2x2(level)
@@ -181,6 +182,42 @@ def _vrt_with_overviews(src: Path, overviews: list[Path], vrt: Path) -> Path:
         ET.SubElement(ov, "SourceBand").text = "1"
     tree.write(vrt)
     return vrt
+
+
+@contextlib.contextmanager
+def exports_alongside(exports: Mapping[str, Callable[[], object]]) -> Iterator[dict[str, float]]:
+    """Run each export in a thread of its own while the ``with`` body runs.
+
+    GDAL compresses a COG's tiles and the compiled kernels average its
+    overviews without the GIL, so an export overlaps with the caller's
+    work (drawing figures, scoring) instead of adding to it.
+
+    Parameters
+    ----------
+    exports : mapping of str to callable
+        Name -> a call without arguments that writes one product.
+
+    Yields
+    ------
+    dict of str to float
+        Filled on leaving the body, once every export has finished: each
+        one's seconds. An export's exception is raised there.
+    """
+    seconds: dict[str, float] = {}
+    if not exports:
+        yield seconds
+        return
+
+    def timed(write: Callable[[], object]) -> float:
+        t0 = time.perf_counter()
+        write()
+        return time.perf_counter() - t0
+
+    with ThreadPoolExecutor(max_workers=len(exports), thread_name_prefix="tiledsm-export") as pool:
+        running = {name: pool.submit(timed, write) for name, write in exports.items()}
+        yield seconds
+        for name, future in running.items():
+            seconds[name] = future.result()
 
 
 def write_geotiff_with_rpc(
@@ -231,7 +268,7 @@ def write_cog(
     resampling: str = "AVERAGE",
     threads: str | int = "ALL_CPUS",
     level: int | None = None,
-    stream_overviews: bool = False,
+    overviews: str = "stream",
 ) -> Path:
     """Export a DataArray as a Cloud-Optimised GeoTIFF, atomically.
 
@@ -259,16 +296,19 @@ def write_cog(
         8192² DSM exports in 4.3 s instead of 7.6 s (``benchmarks/cog.py``).
     level : int, optional
         Compression level (DEFLATE 1-12, ZSTD 1-22; GDAL's default when None).
-    stream_overviews : bool
-        Average the overviews while the source is streamed
-        (:class:`OverviewWriter`) and hand them to the ``COG`` driver
-        instead of letting it read the grid again to compute them: the same
-        values (``AVERAGE`` of a 2-D float grid whose sides are divisible by
-        ``2**levels``; otherwise GDAL computes them as usual). On an 8192²
-        float32 grid the overviews cost 0.2 s of CPU instead of about 4 s.
+    overviews : {"stream", "gdal"}
+        ``"stream"``: where GDAL's ``AVERAGE`` overviews are 2 x 2 means
+        (a 2-D float grid with NaN nodata whose sides are divisible by
+        ``2**levels``), they are averaged while the source is streamed
+        (:class:`OverviewWriter`) and handed to the ``COG`` driver, which
+        otherwise reads the whole grid again to compute them: the same
+        values, bit for bit (``benchmarks/cog.py`` times both); any other
+        grid falls back to GDAL's. ``"gdal"``: always GDAL's.
     """
     import rasterio
     import rasterio.shutil
+    if overviews not in ("stream", "gdal"):
+        raise ValueError(f"write_cog: overviews must be 'stream' or 'gdal', got {overviews!r}")
     if da.ndim not in (2, 3) or da.dims[-2:] != ("y", "x"):
         raise ValueError(f"write_cog: expected dims (y, x) or (band, y, x), got {da.dims}")
     crs = da.rio.crs
@@ -284,7 +324,7 @@ def write_cog(
         opts["LEVEL"] = str(level)
     shape = tuple(int(v) for v in da.shape[-2:])
     levels = cog_overview_count(shape, blocksize)
-    own = (stream_overviews and da.ndim == 2 and resampling.upper() == "AVERAGE" and levels > 0
+    own = (overviews == "stream" and da.ndim == 2 and resampling.upper() == "AVERAGE" and levels > 0
            and nodata is not None and math.isnan(nodata) and streamable_overviews(shape, dt, levels))
     with atomic_path(final) as tmp:
         src = Path(str(tmp) + ".src.tif")

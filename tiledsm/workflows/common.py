@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import logging
 import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable
 
@@ -138,7 +137,7 @@ def write_dsm_products(
     """
     from tiledsm.allocator import heap_kept
     from tiledsm.dsm.stages import LEVELS_DIR, stage_reports
-    from tiledsm.io import write_cog, write_resumable
+    from tiledsm.io import exports_alongside, write_cog, write_resumable
     from tiledsm.io.atomic import remove_path
     from tiledsm.quicklook import quicklook as make_quicklook
 
@@ -172,21 +171,17 @@ def write_dsm_products(
     from tiledsm.io import open_product
 
     stored = open_product(out / "dsm.zarr")
-    t1 = time.perf_counter()
-
-    def timed(write, *args, **kw) -> float:
-        write(*args, **kw)
-        return time.perf_counter() - t1
-
-    # GDAL writes the COG (the GIL released) while the quick-look is drawn
-    # and the caller's work runs; each export's own time is kept
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        exports = ([pool.submit(timed, write_cog, stored["height"], out / "dsm.tif")] if cog else []) + (
-            [pool.submit(timed, make_quicklook, stored["height"], out / "dsm.png", kind="height",
-                         title="DSM (m, ellipsoidal)")] if quicklook else [])
+    exports = {}
+    if cog:
+        exports["cog"] = lambda: write_cog(stored["height"], out / "dsm.tif")
+    if quicklook:
+        exports["quicklook"] = lambda: make_quicklook(stored["height"], out / "dsm.png", kind="height",
+                                                      title="DSM (m, ellipsoidal)")
+    # the COG and the quick-look are written while the caller's work runs
+    with exports_alongside(exports) as seconds:
         if alongside is not None:
             alongside()
-        timings["export_s"] = max([f.result() for f in exports], default=0.0)
+    timings["export_s"] = max(seconds.values(), default=0.0)
     return timings
 
 
