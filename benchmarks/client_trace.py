@@ -25,6 +25,8 @@ Usage::
 
     nice -n 10 .venv/bin/python benchmarks/client_trace.py --sizes 1024
 
+``--allocators fixed --append`` reruns one setting and keeps the results
+file's other rows (each kept row says when it was measured).
 Writes ``benchmarks/results/client_trace.json`` and prints a table.
 """
 
@@ -98,6 +100,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--runs", type=Path, default=REPO / "runs" / "client_trace")
     p.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "client_trace.json")
+    p.add_argument("--allocators", nargs="+", choices=ALLOCATORS, default=list(ALLOCATORS))
+    p.add_argument("--append", action="store_true",
+                   help="keep the results file's rows of the sizes and allocators not run now")
     p.add_argument("--child", nargs=2, metavar=("ALLOCATOR", "TRACE_JSON"), help=argparse.SUPPRESS)
     args, rest = p.parse_known_args(argv)
     if args.child:
@@ -109,9 +114,10 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for size in args.sizes:
         folder = args.runs / f"deformation_{size}"
-        shutil.rmtree(folder, ignore_errors=True)
+        for allocator in args.allocators:
+            shutil.rmtree(folder / f"run_{allocator}", ignore_errors=True)
         recipe = _recipe("deformation", size, folder, recipe_args)
-        for allocator in ALLOCATORS:
+        for allocator in args.allocators:
             out, trace = folder / f"run_{allocator}", folder / f"trace_{allocator}.json"
             cmd = [sys.executable, __file__, "--child", allocator, str(trace),
                    "run", str(recipe), "--out", str(out), "--no-progress"]
@@ -126,11 +132,18 @@ def main(argv: list[str] | None = None) -> int:
                          "peaks": doc["peaks"]})
             print(f"deformation {size:5d} px  {allocator:5s}  {doc['wall_s']:7.1f} s  client peak {top['rss_mib']:7.1f} MiB "
                   f"at {top['t_s']} s in {' > '.join(top['where'])}", flush=True)
+    command = "nice -n 10 .venv/bin/python benchmarks/client_trace.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    if args.append and args.json.exists():
+        earlier = json.loads(args.json.read_text())
+        done = {(r["size"], r["allocator"]) for r in rows}
+        kept = [{"when": earlier["when"], **r} for r in earlier["rows"] if (r["size"], r["allocator"]) not in done]
+        if kept:
+            rows = sorted(kept + rows, key=lambda r: (r["size"], ALLOCATORS.index(r["allocator"])))
+            command = f"{earlier['command']}; then {command}"
     print("\n| size (px) | allocator | wall (s) | client peak (MiB) | where |")
     print("|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['size']} | {r['allocator']} | {r['wall_s']} | {r['client_peak_mib']} | {' > '.join(r['peak_where'])} |")
-    command = "nice -n 10 .venv/bin/python benchmarks/client_trace.py " + " ".join(argv if argv is not None else sys.argv[1:])
     write_result(args.json, "client_trace", command, rows, interval_s=INTERVAL_S, step_mib=STEP_MIB)
     return 0
 

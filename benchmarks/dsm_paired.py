@@ -22,6 +22,7 @@ Writes ``benchmarks/results/dsm_paired.json``.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import statistics
@@ -62,6 +63,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--run-dir", default=str(REPO / "runs" / "bench_dsm"))
     ap.add_argument("--timeout", type=float, default=3600)
     ap.add_argument("--json", default=str(REPO / "benchmarks" / "results" / "dsm_paired.json"))
+    ap.add_argument("--append", action="store_true",
+                    help="keep the results file's rows of the cases not run now (same baseline only)")
     args = ap.parse_args(argv)
     run_dir = Path(args.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -95,6 +98,16 @@ def main(argv: list[str] | None = None) -> int:
             "ratio_wall_median": statistics.median(ratios), "ratio_wall_min": min(ratios), "ratio_wall_max": max(ratios),
             "same_scores": same, "runs": runs,
         })
+    command = " ".join([Path(sys.executable).name, *sys.argv])
+    if args.append and Path(args.json).exists():
+        earlier = json.loads(Path(args.json).read_text())
+        if earlier.get("baseline", {}).get("commit") != commit:
+            raise SystemExit(f"--append: {args.json} was measured against {earlier.get('baseline')}, not {commit}")
+        run_now = {r["case"] for r in rows}
+        kept = [{"when": earlier["when"], **r} for r in earlier["rows"] if r["case"] not in run_now]
+        if kept:
+            rows = kept + rows
+            command = f"{earlier['command']}; then {command}"
     table = ["| case | pairs | this tree: wall (s), CPU (s) (system), largest process (MiB) | baseline: wall (s), "
              "CPU (s) (system), largest process (MiB) | wall ratio A/B, median (range) | same NMAD and completeness |",
              "|---|---|---|---|---|---|"]
@@ -104,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['b_largest_process_mib_median']:.0f} | {r['ratio_wall_median']:.3f} "
               f"({r['ratio_wall_min']:.3f}-{r['ratio_wall_max']:.3f}) | {'yes' if r['same_scores'] else 'NO'} |" for r in rows]
     print("\n".join(table))
-    write_result(Path(args.json), "dsm_paired", " ".join([Path(sys.executable).name, *sys.argv]), rows,
+    write_result(Path(args.json), "dsm_paired", command, rows,
                  baseline={"rev": args.against, "commit": commit}, table="\n".join(table))
     return 0 if all(r["same_scores"] for r in rows) else 1
 
