@@ -12,19 +12,21 @@ to the resident memory instead of replacing the previous one's.
 
 Measured on the deformation recipe at ``input.synth.size: 1024`` (2 cores,
 the client process sampled every 0.2 s, ``benchmarks/client_trace.py``):
-its largest resident memory 1060 MiB with glibc's defaults, during the COG
-export, and 649 MiB with a fixed 1 MiB mmap and trim threshold
+its largest resident memory was 1060 MiB with glibc's defaults, during the
+COG export, and is 623 MiB with a fixed 1 MiB mmap and trim threshold
 (``MALLOC_MMAP_THRESHOLD_=1048576 MALLOC_TRIM_THRESHOLD_=1048576``), which
-is what :func:`return_freed_memory` sets from inside the process.
+is what :func:`return_freed_memory` sets from inside the process
+(``client_trace.json``).
 
-The matching is the exception: each of its tasks allocates and frees its
-1-64 MiB temporaries again (cost volumes, image windows, zarr chunks), and
-mapping them afresh makes the kernel zero every page of every one.
-:func:`heap_kept` raises the thresholds while the matching runs, so freed
-blocks are reused from the heaps, then gives the heaps back
+The exceptions are the block passes: each matching task, and each block of
+the comparison's fit and difference pass, allocates and frees its 1-64 MiB
+temporaries again (cost volumes, image windows, zarr chunks, histogram
+partials), and mapping them afresh makes the kernel zero every page of
+every one. :func:`heap_kept` raises the thresholds while such a pass runs,
+so freed blocks are reused from the heaps, then gives the heaps back
 (``malloc_trim``) and restores the thresholds for the phases after it.
-Measured on ``tiledsm dsm`` at 4096² (2 threads, ``benchmarks/allocator.py``):
-see that benchmark's JSON and the Memory page.
+Measured on ``tiledsm dsm`` at 4096² (2 threads, ``benchmarks/allocator.py``;
+the Memory page) and on ``tiledsm compare`` at 8192² (``benchmarks/compare.py``).
 """
 
 from __future__ import annotations

@@ -57,6 +57,7 @@ import rioxarray  # noqa: F401  (registers .rio)
 import xarray as xr
 from affine import Affine
 
+from tiledsm.allocator import heap_kept
 from tiledsm.compare.align import AlignedPair, align_dsms, open_dsm
 from tiledsm.compare.export import jsonable
 from tiledsm.compare.coreg import (
@@ -400,7 +401,8 @@ def compare_dsms(ref, other, out_dir: str | Path, spec: CompareSpec = CompareSpe
     oth_da = _as_input(other, spec.chunk)
     pair = align_dsms(ref_da, oth_da, spec.chunk, spec.resampling)
     geoms = read_polygons(spec.stable_mask, pair.crs) if spec.stable_mask else []
-    coreg = fit_coregistration(pair, spec, geoms)
+    with heap_kept():  # the fit's window reads and iterations reuse their blocks (tiledsm.allocator)
+        coreg = fit_coregistration(pair, spec, geoms)
     t_fit = time.perf_counter() - t0
     log.info("co-registration %s: dx=%.3f px dy=%.3f px dz=%.3f m", coreg.method, coreg.dx_px, coreg.dy_px, coreg.dz)
 
@@ -485,7 +487,8 @@ def _write_products(ds, pair, coreg, geoms, spec: CompareSpec, output: CompareOu
     def compute_all(store_delayed):
         got.extend(dask.compute(store_delayed, *wanted)[1:])
 
-    write_zarr(ds, staging / "dh.zarr", compute=compute_all)
+    with heap_kept():  # each block's reads, shifts and partials reuse the previous block's memory
+        write_zarr(ds, staging / "dh.zarr", compute=compute_all)
     products["dh_zarr"] = staging / "dh.zarr"
     part = got[0]
     stats = hs.finalize(part)
