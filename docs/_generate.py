@@ -609,6 +609,12 @@ def memory_page() -> str:
     trace_rows = [[f"{r['size']} px", {"glibc": "glibc's defaults", "fixed": "as `tiledsm` sets it"}[r["allocator"]],
                    f"{r['client_peak_mib']:.0f} MiB", " > ".join(f"`{w}`" for w in r["peak_where"])]
                   for r in trace["rows"]]
+    heap = json.loads((RESULTS / "allocator.json").read_text())
+    heap_rows = [[f"{r['matching_mmap_threshold_mib']} MiB" + (" (the default)" if r["default"] else ""),
+                  f"{r['wall_s_median']:.1f} s", f"{r['cpu_s_median']:.1f} s", f"{r['sys_s_median']:.1f} s",
+                  f"{r['largest_process_mib_median']:.0f} MiB", "yes" if r["same_dsm_scores"] else "**no**"]
+                 for r in heap["rows"]]
+    heap_case = heap["rows"][0]
     return (
         "# Memory\n\nGenerated from `benchmarks/results/*.json` when the site is built (the commands are in each "
         "file's section of [Results files](results.md)), on the project's shared 2-core machine.\n\n"
@@ -628,7 +634,15 @@ def memory_page() -> str:
         "every 0.2 s, and where its main thread was at the peak) with glibc's allocator as it comes and with the "
         "thresholds every command sets ([why](../decisions/allocator.md); "
         f"[client_trace.json](results.md#client_tracejson), {trace['when']}):\n\n"
-        + _table(["deformation scene", "allocator", "client peak", "where"], trace_rows) + "\n"
+        + _table(["deformation scene", "allocator", "client peak", "where"], trace_rows)
+        + "\n\n## The matching keeps its temporaries\n\nWhile the DSM store is computed, the mmap threshold is "
+        "raised so that each matching task reuses the blocks the previous one freed instead of mapping and zeroing "
+        "them afresh; the heaps are given back once the store is finished ([why](../decisions/allocator.md)). "
+        f"`tiledsm dsm` on the synthetic {heap_case['data'].split()[1]} scene, {heap_case['workers']} threads, the "
+        f"three thresholds in turn, medians of {heap_case['rounds']} rounds "
+        f"([allocator.json](results.md#allocatorjson), {heap['when']}):\n\n"
+        + _table(["matching's mmap threshold", "wall", "CPU", "of which system", "largest process", "same DSM"],
+                 heap_rows) + "\n"
     )
 
 

@@ -292,8 +292,8 @@ def write_cog(
     threads : str or int
         GDAL's ``NUM_THREADS`` for compressing the tiles (``"ALL_CPUS"``
         or a count): tiles are compressed independently, so the file is
-        byte-identical to a single-threaded one (tested); on 2 cores an
-        8192² DSM exports in 4.3 s instead of 7.6 s (``benchmarks/cog.py``).
+        byte-identical to a single-threaded one (tested); 1.7x faster on
+        2 cores at 8192² (``benchmarks/cog.py``, ``cog.json``).
     level : int, optional
         Compression level (DEFLATE 1-12, ZSTD 1-22; GDAL's default when None).
     overviews : {"stream", "gdal"}
@@ -302,8 +302,8 @@ def write_cog(
         ``2**levels``), they are averaged while the source is streamed
         (:class:`OverviewWriter`) and handed to the ``COG`` driver, which
         otherwise reads the whole grid again to compute them: the same
-        values, bit for bit (``benchmarks/cog.py`` times both); any other
-        grid falls back to GDAL's. ``"gdal"``: always GDAL's.
+        values, bit for bit, in less time (``benchmarks/cog.py`` times
+        both routes); any other grid falls back to GDAL's. ``"gdal"``: always GDAL's.
     """
     import rasterio
     import rasterio.shutil
