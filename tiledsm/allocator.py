@@ -32,6 +32,7 @@ the Memory page) and on ``tiledsm compare`` at 8192² (``benchmarks/compare.py``
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 import sys
 from collections.abc import Iterator
@@ -57,6 +58,7 @@ _M_MMAP_THRESHOLD = -3
 _fixed: tuple[int, int] | None = None
 
 
+@functools.lru_cache(maxsize=None)
 def _libc():
     try:
         libc = ctypes.CDLL("libc.so.6")
