@@ -21,7 +21,16 @@ command's own code path), and reports:
 - the process's CPU seconds (``getrusage`` of the child: its native
   threads too, GDAL's and blosc's), CPU / wall, and the CPU seconds of its
   threads by name at the end (the workers, zarr's I/O loop, native
-  threads; threads that ended together).
+  threads; threads that ended together);
+- with ``--stacks HZ``, where the matching tasks' threads are: every
+  thread's Python stack sampled ``HZ`` times a second in the child
+  (``sys._current_frames``: no ptrace, so it runs in containers that
+  refuse py-spy), the functions holding the largest shares of the samples
+  taken inside a task, and the collapsed stacks (flamegraph input) beside
+  the events. A sample shows where a thread is, not whether it holds the
+  GIL or waits for it.
+
+``--device cuda --workers 16`` runs the GPU matching (on a GPU machine).
 
 Writes ``benchmarks/results/dsm_phases.json``.
 """
@@ -58,14 +67,92 @@ TIMED = (
 )
 
 
-def _child(events_json: str, argv: list[str]) -> None:
+class StackSampler(threading.Thread):
+    """Every other thread's Python stack, ``hz`` times a second, counted as
+    collapsed stacks (``"outer (file:line);...;inner (file:line)"``)."""
+
+    def __init__(self, hz: float):
+        super().__init__(name="stack-sampler", daemon=True)
+        self.period = 1.0 / hz
+        self.counts: dict[str, int] = {}
+        self.halt = threading.Event()
+
+    def run(self) -> None:
+        me = threading.get_ident()
+        while not self.halt.wait(self.period):
+            for tid, frame in sys._current_frames().items():
+                if tid == me:
+                    continue
+                names = []
+                while frame is not None:
+                    code = frame.f_code
+                    names.append(f"{code.co_name} ({Path(code.co_filename).name}:{frame.f_lineno})")
+                    frame = frame.f_back
+                key = ";".join(reversed(names))
+                self.counts[key] = self.counts.get(key, 0) + 1
+
+
+def top_functions(counts: dict[str, int], inside: str = "_staged_task", n: int = 25) -> list[dict]:
+    """The functions (name and file) present in the largest shares of the
+    stack samples taken inside ``inside`` (``function, samples, share``),
+    then the innermost lines of the largest shares (``line`` rows: where
+    the threads are)."""
+    per: dict[str, int] = {}
+    leaves: dict[str, int] = {}
+    total = 0
+    for stack, c in counts.items():
+        lines = stack.split(";")
+        frames = [f.rsplit(":", 1)[0] + ")" for f in lines]
+        if not any(f.startswith(inside + " ") for f in frames):
+            continue
+        total += c
+        leaves[lines[-1]] = leaves.get(lines[-1], 0) + c
+        for f in set(frames[next(i for i, f in enumerate(frames) if f.startswith(inside + " ")):]):
+            per[f] = per.get(f, 0) + c
+    top = sorted(per.items(), key=lambda kv: -kv[1])[:n]
+    inner = sorted(leaves.items(), key=lambda kv: -kv[1])[:n]
+    return ([{"function": f, "samples": c, "share": round(c / total, 3)} for f, c in top]
+            + [{"line": f, "samples": c, "share": round(c / total, 3)} for f, c in inner])
+
+
+#: (label, frame prefix) of the waits :func:`wait_shares` counts, the
+#: first that a sample's stack holds (opening a zarr array also waits on
+#: zarr's loop: it comes before the loop)
+WAITS = (
+    ("numba-cuda context lookup", "get_or_create_context ("),
+    ("zarr: opening an array", "open_array (synchronous.py"),
+    ("zarr: its I/O loop (reads, writes)", "sync (sync.py"),
+    ("numba: the compiler lock", "acquire (compiler_lock.py"),
+)
+
+
+def wait_shares(counts: dict[str, int], inside: tuple[str, ...] = ("_staged_task", "_despeckled_task")) -> dict:
+    """Shares of the stack samples taken inside the graph's tasks (stacks
+    holding a frame of ``inside``) that stand in each :data:`WAITS` entry;
+    ``"samples"``: how many were taken inside."""
+    out = {label: 0 for label, _ in WAITS}
+    total = 0
+    for stack, c in counts.items():
+        if not any(f"{name} (" in stack for name in inside):
+            continue
+        total += c
+        for label, prefix in WAITS:
+            if prefix in stack:
+                out[label] += c
+                break
+    return {"samples": total, **{k: round(v / total, 3) if total else 0.0 for k, v in out.items()}}
+
+
+def _child(events_json: str, argv: list[str], stacks_hz: float = 0.0) -> None:
     """Time :data:`TIMED` (wall from this process's start, thread CPU, the
     level of a matching task) while ``tiledsm.cli.main(argv)`` runs; dump
-    the events, the CLI's start and end and the process's CPU."""
+    the events, the CLI's start and end and the process's CPU (and, with
+    ``stacks_hz``, the sampled stacks: :class:`StackSampler`)."""
     import importlib
 
     t0 = time.perf_counter()
     events: list[dict] = []
+    sampler = StackSampler(stacks_hz) if stacks_hz > 0 else None
 
     def wrap(module, name: str, tag: str) -> None:
         f = getattr(module, name)
@@ -88,14 +175,20 @@ def _child(events_json: str, argv: list[str]) -> None:
     from tiledsm.cli import main
 
     cli_start = time.perf_counter() - t0
+    if sampler is not None:
+        sampler.start()
     try:
         code = main(argv)
     except SystemExit as exc:  # the CLI's exit status
         code = exc.code
+    if sampler is not None:
+        sampler.halt.set()
+        sampler.join()
     ru = resource.getrusage(resource.RUSAGE_SELF)
     Path(events_json).write_text(json.dumps({
         "code": code, "cli_start": cli_start, "cli_end": time.perf_counter() - t0,
         "cpu_s": ru.ru_utime + ru.ru_stime, "threads_cpu_s": thread_cpu(), "events": events,
+        "stacks": sampler.counts if sampler is not None else None,
     }))
 
 
@@ -196,12 +289,20 @@ def table(case: str, rows: list[dict], graph: dict, wall: float, cpu: float) -> 
     if threads:
         lines += ["", "Process CPU by thread (s): " + ", ".join(f"{k} {v:.1f}" for k, v in
                                                               sorted(threads.items(), key=lambda kv: -kv[1]))]
+    waits = graph.get("stack_waits")
+    if waits:
+        lines += ["", f"Of {waits['samples']} stack samples inside the tasks: " + ", ".join(
+            f"{k} {100 * v:.1f} %" for k, v in waits.items() if k != "samples")]
+    if graph.get("stacks_top"):
+        lines += ["", "| inside the matching tasks: function | share of samples |", "|---|---|"]
+        lines += [f"| {r.get('function') or 'line ' + r['line']} | {100 * r['share']:.1f} % |"
+                  for r in graph["stacks_top"]]
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
-    if argv is None and len(sys.argv) > 2 and sys.argv[1] == "--child":
-        _child(sys.argv[2], sys.argv[3:])
+    if argv is None and len(sys.argv) > 3 and sys.argv[1] == "--child":
+        _child(sys.argv[3], sys.argv[4:], float(sys.argv[2]))
         return 0
     from benchmarks._measure import write_result
     from benchmarks.dsm import case_args
@@ -209,6 +310,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="+", default=["synth4096"], help="s2p and/or synth<N>")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--device", default="cpu", help="tiledsm dsm --device: cpu, cuda, cuda:N")
+    ap.add_argument("--stacks", type=float, default=0.0, metavar="HZ",
+                    help="sample every thread's Python stack HZ times a second (0: not)")
     ap.add_argument("--run-dir", default=str(REPO / "runs" / "bench_dsm"))
     ap.add_argument("--json", default=str(REPO / "benchmarks" / "results" / "dsm_phases.json"))
     args = ap.parse_args(argv)
@@ -217,14 +321,16 @@ def main(argv: list[str] | None = None) -> int:
     out_rows, tables = [], []
     for case in args.cases:
         dsm_args, facts = case_args(case, run_dir)
-        out = run_dir / f"phases_{case}"
+        name = case if args.device == "cpu" else f"{case}_{args.device.replace(':', '')}"
+        out = run_dir / f"phases_{name}"
         subprocess.run(["rm", "-rf", str(out)], check=True)  # a finished store would be resumed
-        events = run_dir / f"phases_{case}.json"
-        argv_child = [sys.executable, str(Path(__file__).resolve()), "--child", str(events), "dsm", *dsm_args,
-                      "--out", str(out), "--workers", str(args.workers), "--scheduler", "threads", "--no-progress"]
+        events = run_dir / f"phases_{name}.json"
+        argv_child = [sys.executable, str(Path(__file__).resolve()), "--child", str(args.stacks), str(events), "dsm",
+                      *dsm_args, "--out", str(out), "--workers", str(args.workers), "--scheduler", "threads",
+                      "--device", args.device, "--no-progress"]
         load_before = os.getloadavg()
         t0 = time.perf_counter()
-        done = subprocess.run(argv_child, env=dict(os.environ, PYTHONPATH=str(REPO)), capture_output=True, text=True)
+        done = subprocess.run(argv_child, env=dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))), capture_output=True, text=True)
         wall = time.perf_counter() - t0
         if done.returncode != 0:
             raise SystemExit(f"{' '.join(argv_child)} failed:\n{done.stderr[-3000:]}")
@@ -232,10 +338,17 @@ def main(argv: list[str] | None = None) -> int:
         rows, graph = phase_rows(doc, wall)
         threads = doc["threads_cpu_s"]
         graph["threads_cpu_s"] = {**threads, "ended threads": round(doc["cpu_s"] - sum(threads.values()), 2)}
-        tables.append(table(case, rows, graph, wall, doc["cpu_s"]))
+        stacks = doc.get("stacks")
+        if stacks:
+            graph["stacks_top"] = top_functions(stacks)
+            graph["stack_waits"] = wait_shares(stacks)
+            (run_dir / f"phases_{name}.stacks").write_text(
+                "".join(f"{k} {v}\n" for k, v in sorted(stacks.items())))
+        tables.append(table(name, rows, graph, wall, doc["cpu_s"]))
         print(tables[-1], flush=True)
         out_rows.append({"case": case, **{k: v for k, v in facts.items() if k in ("data", "reference")},
-                         "workers": args.workers, "scheduler": "threads", "wall_s": round(wall, 2),
+                         "device": args.device, "workers": args.workers, "scheduler": "threads",
+                         "wall_s": round(wall, 2),
                          "cpu_s": round(doc["cpu_s"], 2), "mcells_per_s": None,
                          "load_before": list(load_before), "load_after": list(os.getloadavg()),
                          "phases": rows, "graph": graph})

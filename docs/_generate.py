@@ -591,6 +591,29 @@ def gpu_table() -> str:
             + _table(["measured", "value", "40 000² at that rate", "results file"], rows))
 
 
+def gpu_phases() -> str:
+    """Where the wall time of the GPU machine's 4096² runs goes, phase by
+    phase on each device, and what the GPU run's tasks stood in
+    (``dsm_phases_gpu.json``)."""
+    doc = json.loads((RESULTS / "dsm_phases_gpu.json").read_text())
+    runs = {r["device"]: r for r in doc["rows"]}
+    order = [d for d in ("cuda", "cpu") if d in runs]
+    names = [p["phase"] for p in runs[order[0]]["phases"]]
+    rows = [[name] + [f"{next(p['wall_s'] for p in runs[d]['phases'] if p['phase'] == name):.1f} s" for d in order]
+            for name in names]
+    rows.append(["**whole command**"] + [f"**{runs[d]['wall_s']:.1f} s**" for d in order])
+    head = ["phase"] + [{"cuda": "GPU, 16 threads", "cpu": "16 CPU threads"}[d] for d in order]
+    text = (f"Where the time of one 4096² run goes on that machine (`benchmarks/dsm_phases.py --workers 16 "
+            f"--device cuda --stacks 100`, then `--device cpu`; the sampling slows each run; tree: {doc['tree']}):\n\n"
+            + _table(head, rows))
+    waits = runs.get("cuda", {}).get("graph", {}).get("stack_waits")
+    if waits:
+        text += ("\nWhere the GPU run's matching tasks waited, as shares of the stack samples taken inside them: "
+                 + "; ".join(f"{k} {100 * v:.0f} %" for k, v in waits.items() if k != "samples")
+            + " ([dsm_phases_gpu.json](results.md#dsm_phases_gpujson)).\n")
+    return text
+
+
 def memory_page() -> str:
     """How the largest process of a whole run grows with the scene
     (``workflow_memory.json``) and what ``--reference`` adds to ``tiledsm
@@ -698,6 +721,6 @@ def headline_pages() -> dict[str, str]:
         "the project's 2-core machine (its speed drifts by 30-50 % within an hour: compare runs of one "
         "session only; `benchmarks/dsm_paired.py` measures a change in alternating pairs).\n\n"
         + headline_table(SPEED) + "\n## Comparing two DSMs\n\n" + compare_table()
-        + "\n## On a GPU machine\n\n" + gpu_table(),
+        + "\n## On a GPU machine\n\n" + gpu_table() + "\n" + gpu_phases(),
         f"{GENERATED}/memory.md": memory_page(),
     }

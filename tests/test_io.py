@@ -476,3 +476,30 @@ def test_gdal_block_cache_is_capped_unless_the_user_set_it():
            "    print(get_gdal_config('GDAL_CACHEMAX'))\n")
     out = subprocess.run([sys.executable, "-c", cfg], env=env, capture_output=True, text=True, check=True)
     assert int(out.stdout) == 64 * 2**20  # GDAL reports the cache size in bytes
+
+
+def test_open_store_array_opens_once_and_again_when_remade(tmp_path):
+    """The same zarr array object while its metadata file stays; a store
+    removed and made anew (another shape) is opened afresh and read right;
+    a missing array raises zarr's own error."""
+    import shutil
+
+    import zarr
+
+    from tiledsm.io import open_store_array
+
+    store = tmp_path / "s.zarr"
+    zarr.create_array(store=str(store), name="h", shape=(4, 4), chunks=(2, 2), dtype="float32", fill_value=0)
+    a = open_store_array(store, "h", mode="r+")
+    a[0:2, 0:2] = 7.0
+    assert open_store_array(store, "h", mode="r+") is a
+    assert open_store_array(store, "h", mode="r") is not a  # one per mode
+    assert float(np.asarray(open_store_array(store, "h", mode="r")[0, 0])) == 7.0
+    shutil.rmtree(store)
+    zarr.create_array(store=str(store), name="h", shape=(6, 3), chunks=(3, 3), dtype="float32", fill_value=1)
+    b = open_store_array(store, "h", mode="r")
+    assert b is not a and b.shape == (6, 3)
+    assert np.asarray(b[...]).tolist() == np.ones((6, 3)).tolist()
+    with pytest.raises(Exception) as err:
+        open_store_array(store, "missing", mode="r")
+    assert "missing" in str(err.value)

@@ -52,7 +52,7 @@ from tiledsm.dsm.layout import LevelLayout, chunk_window
 from tiledsm.dsm.levels import LevelGeometry, match_task
 from tiledsm.dsm.params import DSMParams
 from tiledsm.dsm.views import View
-from tiledsm.io import ChunkStore
+from tiledsm.io import ChunkStore, open_store_array
 
 __all__ = ["LEVELS_DIR", "LevelStore", "StagedLevel", "ScratchFolder", "stage_level", "finest_from_stage",
            "stage_reports"]
@@ -135,9 +135,7 @@ def _writer_tokens(tokens: da.Array, rows: Sequence[range], cols: Sequence[range
 
 # ------------------------------------------------------------------ windows
 def _read(store: ChunkStore, r0: int, r1: int, c0: int, c1: int, variable: str = "height") -> np.ndarray:
-    import zarr
-
-    return np.asarray(zarr.open_array(store=str(store.live_path), path=variable, mode="r")[r0:r1, c0:c1])
+    return np.asarray(open_store_array(store.live_path, variable, mode="r")[r0:r1, c0:c1])
 
 
 def coarse_heights(coarser: LevelStore, layout: LevelLayout, i: int, j: int) -> np.ndarray:
@@ -208,8 +206,6 @@ def _staged_task(*_ready, block_id, coarser, level, views, h_range, params) -> n
     unless an earlier run did; a ``(1, 1)`` token: whether it was computed.
     ``_ready``: the level's setup, and the coarser tasks it reads (at the
     coarsest level a block index; their values unused)."""
-    import zarr
-
     store, layout = level.store, level.layout
     i, j = block_id
     r0, r1, c0, c1 = layout.chunk_cells(i, j)
@@ -224,11 +220,11 @@ def _staged_task(*_ready, block_id, coarser, level, views, h_range, params) -> n
         w0, w1, v0, v1 = store.block_window(bi, bj)
         cand = details["candidates"][w0 - r0 : w1 - r0, v0 - c0 : v1 - c0]
         # before the block is marked done (write_block), so a done block has its counts
-        zarr.open_array(store=where, path=f"{_COUNTS}/candidates", mode="r+")[bi, bj] = int(cand.sum())
-        zarr.open_array(store=where, path=f"{_COUNTS}/cells", mode="r+")[bi, bj] = int((cand > 0).sum())
+        open_store_array(where, f"{_COUNTS}/candidates", mode="r+")[bi, bj] = int(cand.sum())
+        open_store_array(where, f"{_COUNTS}/cells", mode="r+")[bi, bj] = int((cand > 0).sum())
         part = res[:, w0 - r0 : w1 - r0, v0 - c0 : v1 - c0]
         store.write_block(bi, bj, dict(zip(store.variables, part)))
-    zarr.open_array(store=where, path=f"{_COUNTS}/{_COMPUTED}", mode="r+")[i, j] = 1
+    open_store_array(where, f"{_COUNTS}/{_COMPUTED}", mode="r+")[i, j] = 1
     return np.ones((1, 1), bool)
 
 

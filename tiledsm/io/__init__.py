@@ -39,9 +39,9 @@ Conventions
 
 The package: :mod:`.atomic` (atomic writes), :mod:`.cameras` (RPC files read
 and written, camera discovery), :mod:`.geoid` (geoid grids), :mod:`.grids`
-(the ground grid of a raster), :mod:`.scenes` (images and
-their cameras), :mod:`.stores` (zarr products and resumable stores) and
-:mod:`.export` (GeoTIFF/COG).
+(the ground grid of a raster), :mod:`.opened` (zarr arrays opened once per
+process), :mod:`.scenes` (images and their cameras), :mod:`.stores` (zarr
+products and resumable stores) and :mod:`.export` (GeoTIFF/COG).
 """
 
 from tiledsm.io.cameras import find_camera, read_rpc
@@ -49,6 +49,7 @@ from tiledsm.io.grids import grid_like
 from tiledsm.io.scenes import open_scene, scene_rpc
 from tiledsm.io.atomic import atomic_path, withdraw
 from tiledsm.io.stores import write_zarr, open_product, open_raster_product, ChunkStore, create_store, write_blocks, write_resumable
+from tiledsm.io.opened import open_store_array
 from tiledsm.io.export import exports_alongside, write_cog, write_geotiff_with_rpc
 
 __all__ = [
@@ -68,4 +69,5 @@ __all__ = [
     "create_store",
     "write_blocks",
     "write_resumable",
+    "open_store_array",
 ]

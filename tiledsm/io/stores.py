@@ -18,6 +18,7 @@ import xarray as xr
 from tiledsm.errors import GridError, InputFileError, TiledsmError
 from tiledsm.io.atomic import commit_path, remove_path, atomic_path
 from tiledsm.io.codecs import store_encoding
+from tiledsm.io.opened import open_store_array
 from tiledsm.io.scenes import open_scene
 
 log = logging.getLogger("tiledsm.io")
@@ -106,11 +107,9 @@ def write_zarr(
 
 def _progress_array(path: Path):
     """Completion markers of a resumable store (read-only), None if plain."""
-    import zarr
-
     if not (Path(path) / _PROGRESS / "done" / "zarr.json").is_file():
         return None
-    return zarr.open_array(store=str(path), path=f"{_PROGRESS}/done", mode="r")
+    return open_store_array(path, f"{_PROGRESS}/done", mode="r")
 
 
 def _read_progress(path: Path) -> np.ndarray | None:
@@ -274,8 +273,6 @@ class ChunkStore:
             Shape ``shape[:-2] + (row1-row0, col1-col0)``; an array when the
             store has one variable.
         """
-        import zarr
-
         if not isinstance(values, Mapping):
             if len(self.variables) != 1:
                 raise ValueError(f"{self.path}: store has variables {self.variables}; pass a dict")
@@ -289,9 +286,9 @@ class ChunkStore:
             expect = tuple(self.shape[:-2]) + (r1 - r0, c1 - c0)
             if v.shape != expect:
                 raise ValueError(f"{self.path}: block ({i}, {j}) of {name!r} has shape {v.shape}, expected {expect}")
-            arr = zarr.open_array(store=where, path=name, mode="r+")
+            arr = open_store_array(where, name, mode="r+")
             arr[(Ellipsis, slice(r0, r1), slice(c0, c1))] = v.astype(arr.dtype, copy=False)
-        zarr.open_array(store=where, path=f"{_PROGRESS}/done", mode="r+")[i, j] = 1
+        open_store_array(where, f"{_PROGRESS}/done", mode="r+")[i, j] = 1
 
     def finalize(self) -> Path:
         """Rename the complete store onto its final path (atomic).

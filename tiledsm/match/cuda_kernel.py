@@ -119,6 +119,20 @@ class _Selected:
         return self._ctx.__exit__(*exc)
 
 
+def _on_device(device: str, body):
+    """``body(cuda, space)`` with GPU ``device`` current, this thread's
+    :class:`_Workspace` on it, and numba's context attached to the thread
+    meanwhile (``cuda.require_context``).
+
+    Without the attachment numba-cuda looks the context up afresh for every
+    launch, upload and download, under one lock for the whole process: on
+    an H100 with sixteen dask threads, 27 % of the matching tasks' stack
+    samples stood there (``benchmarks/results/dsm_phases_gpu.json``)."""
+    with _Selected(device) as cuda:
+        space = _workspace(cuda, _device_index(device))
+        return cuda.require_context(body)(cuda, space)
+
+
 def _kernels():
     """The compiled kernels (:mod:`tiledsm.match._cuda_kernels`, imported
     at the first call: importing numba.cuda and compiling are paid by GPU
@@ -271,9 +285,12 @@ class DeviceVolume:
         return tuple(self.data.shape)
 
     def __array__(self, dtype=None, copy=None):
-        with _Selected(self.device):
+        def body(cuda, space):
             host = self.data.copy_to_host(stream=self.stream)
             self.stream.synchronize()
+            return host
+
+        host = _on_device(self.device, body)
         return host if dtype is None else host.astype(dtype)
 
 
@@ -294,8 +311,8 @@ def cost_volume(
     lo, hi, ns = sample_plan(base_h, nvalid_h, half, details)
     pairs, pw = view_pairs(nv, pair_w)
     sample_k, zncc_k, fill_k, _, _ = _kernels()
-    with _Selected(device) as cuda:
-        space = _workspace(cuda, _device_index(device))
+
+    def body(cuda, space):
         stream = space.stream
         vol = space.take("vol", (ny, nx, nd), np.float32)
         d_nvalid = space.upload("nvalid", nvalid_h)
@@ -329,7 +346,9 @@ def cost_volume(
         # stream) is ordered after it
         space.give("samples", "images", "shapes", "lat_r", "lat_c", "href", "win_r", "win_c", "lo", "hi",
                    "pair_u", "pair_v", "pair_w")
-    return out
+        return out
+
+    return _on_device(device, body)
 
 
 def _block_threads(nd: int) -> int:
@@ -397,13 +416,16 @@ def aggregate(
     numpy array; ``cost`` a numpy volume or a :class:`DeviceVolume`."""
     if guide is not None:
         raise ValueError("the cuda kernel aggregates without a guide image")
-    with _Selected(device) as cuda:
-        space = _workspace(cuda, _device_index(device))
+
+    def body(cuda, space):
         S, _, d_n = _aggregated(cost, P1, P2, base, nvalid, invalid_cost, origin, restart_period, space)
         host_S = S.copy_to_host(stream=space.stream)
         n = d_n.copy_to_host(stream=space.stream)
         space.stream.synchronize()
         space.give("S", "base_in", "nvalid_in")
+        return host_S, n
+
+    host_S, n = _on_device(device, body)
     # absent candidates: +inf, as the CPU passes sum them
     host_S[np.arange(host_S.shape[2]) >= n[..., None]] = np.inf
     return host_S
@@ -418,8 +440,8 @@ def best(
     ratio, cbest``), one ``(4, ny, nx)`` array copied back. A
     :class:`DeviceVolume`'s buffer goes back to its workspace."""
     _, _, _, _, winner_k = _kernels()
-    with _Selected(device) as cuda:
-        space = _workspace(cuda, _device_index(device))
+
+    def body(cuda, space):
         S, d_cost, d_n = _aggregated(cost, P1, P2, base, nvalid, invalid_cost, origin, restart_period, space)
         ny, nx, _ = S.shape
         out = space.take("winners", (4, ny, nx), np.float32)
@@ -430,4 +452,7 @@ def best(
         if isinstance(cost, DeviceVolume):
             space.restore(cost.held)
             cost.held = []
+        return host
+
+    host = _on_device(device, body)
     return host[0], host[1], host[2], host[3]
