@@ -174,6 +174,40 @@ def test_cli_dsm_runs_on_threads_unless_told_otherwise(scene, tmp_path, capsys):
     assert "local cluster: 2 single-threaded worker processes" in capsys.readouterr().out
 
 
+def test_cli_dsm_tif_overviews_are_gdals(scene, tmp_path):
+    """``dsm.tif`` of ``tiledsm dsm`` (a 768 x 576-cell part of the
+    synthetic scene: one overview level, averaged while the rows stream)
+    holds ``dsm.zarr``'s heights, and its overview equals the one GDAL's
+    ``COG`` driver averages from the same grid (the oracle: ``write_cog``
+    with ``overviews="gdal"``), NaN holes included."""
+    import rasterio
+
+    from tiledsm.cli import main
+    from tiledsm.io import write_cog
+    from tiledsm.io.overviews import cog_overview_count, streamable_overviews
+
+    with rasterio.open(scene.truth_dsm) as src:
+        crs, res, t = src.crs.to_string(), abs(src.res[0]), src.transform
+    x0, y0 = t.c + 128 * t.a, t.f + 128 * t.e
+    out = tmp_path / "out"
+    bounds = [x0, y0 - 576 * res, x0 + 768 * res, y0]
+    assert main(["dsm", *map(str, scene.views), "--crs", crs, "--resolution", str(res), "--bounds", *map(str, bounds),
+                 "--out", str(out), "--chunk", "256", "--workers", "2", "--scheduler", "threads",
+                 "--no-progress"]) == 0
+    height = open_product(out / "dsm.zarr")["height"]
+    assert height.shape == (576, 768) and cog_overview_count(height.shape, 512) == 1
+    assert streamable_overviews(height.shape, height.dtype, 1)  # the streamed route, not GDAL's
+    with rasterio.open(out / "dsm.tif") as cog:
+        assert cog.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG" and cog.overviews(1) == [2]
+        np.testing.assert_array_equal(cog.read(1), height.values)
+    assert np.isnan(height.values).any()
+    gdal = write_cog(height, tmp_path / "gdal.tif", overviews="gdal")
+    with rasterio.open(out / "dsm.tif", overview_level=0) as ours, rasterio.open(gdal, overview_level=0) as want:
+        got, expect = ours.read(1), want.read(1)
+    assert got.shape == (288, 384) and np.isnan(expect).any()
+    np.testing.assert_array_equal(got, expect)
+
+
 def test_cli_dsm_reference_scores_match_numpy(scene, tmp_path):
     """``tiledsm dsm --reference`` on a 320 x 320-cell part of the synthetic
     scene (chunks of 128): the statistics metrics.json gives (streamed chunk
