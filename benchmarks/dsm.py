@@ -234,6 +234,11 @@ def run_case(name: str, workers: int, run_dir: Path, chunk: int, timeout: float,
             # per pyramid level: chunks, cells searched, mean candidate heights per searched cell
             levels=metrics["timings"].get("levels"),
         )
+    else:  # the log's end where the run folder does not outlive the run (a lent GPU machine)
+        log = out.with_suffix(".log")
+        tail = log.read_text(errors="replace").splitlines()[-15:] if log.exists() else []
+        print(f"{name} on {device}, {workers} {scheduler} workers failed (rc {m.returncode}); end of {log}:",
+              *tail, sep="\n", file=sys.stderr)
     return row
 
 

@@ -106,3 +106,22 @@ def test_cuda_kernel_names_a_device_it_cannot_use():
             SGVLLParams(kernel="cuda", device="cuda")
     with pytest.raises(ValueError, match="runs on the CPU only"):
         SGVLLParams(kernel="fast", device="cuda")
+
+
+def test_dsm_plans_a_cuda_run_in_the_simulator(tmp_path):
+    """``tiledsm dsm --device cuda --dry-run`` under numba's CUDA simulator,
+    which reports no GPU memory (infinite): the plan leaves the GPU budget
+    out instead of failing on it (it ended in an OverflowError traceback)."""
+    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
+    scene = tmp_path / "scene"
+    cli = [sys.executable, "-m", "tiledsm"]
+    made = subprocess.run([*cli, "synth", str(scene), "--size", "128", "--seed", "0"], env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert made.returncode == 0, made.stderr[-3000:]
+    run = subprocess.run([*cli, "dsm", str(scene / "view_0.tif"), str(scene / "view_1.tif"), "--like",
+                          str(scene / "truth_dsm.tif"), "--out", str(tmp_path / "out"), "--device", "cuda",
+                          "--workers", "2", "--scheduler", "threads", "--dry-run"],
+                         env=env, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-3000:]
+    assert "Traceback" not in run.stderr and "per worker" in run.stdout
+    assert not (tmp_path / "out").exists()  # a dry run writes nothing

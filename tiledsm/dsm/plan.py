@@ -344,15 +344,18 @@ class _GPUBudget(_WorkerBudget):
 
     @classmethod
     def of(cls, device: str, cluster) -> _GPUBudget:
-        """The budget of one task on ``device`` (none off a GPU, or where
-        the tasks per GPU are not known: an existing cluster)."""
+        """The budget of one task on ``device`` (none off a GPU, where the
+        tasks per GPU are not known: an existing cluster, or where its
+        memory is not: numba's CUDA simulator)."""
         tasks = tasks_per_device(cluster) if str(device).startswith("cuda") else None
         if tasks is None:
             return cls(None)
         from tiledsm.match.cuda_kernel import memory_info
 
-        free, _ = memory_info(device)
-        return cls(int(GPU_USABLE * free / tasks), tasks=tasks, device=str(device))
+        info = memory_info(device)
+        if info is None:
+            return cls(None)
+        return cls(int(GPU_USABLE * info[0] / tasks), tasks=tasks, device=str(device))
 
 
 def _chunk_for_budget(plan: Plan, views, grid, h_range, levels: int, params, budget: _WorkerBudget,

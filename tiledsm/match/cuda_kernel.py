@@ -87,10 +87,13 @@ def check_device(device: str) -> None:
         raise ValueError(f"device {device!r}: only {len(cuda.gpus)} CUDA device(s) here")
 
 
-def memory_info(device: str) -> tuple[int, int]:
-    """``(free, total)`` bytes of the GPU ``device``."""
+def memory_info(device: str) -> tuple[int, int] | None:
+    """``(free, total)`` bytes of the GPU ``device``; None where they are
+    not known (numba's CUDA simulator reports infinite memory)."""
     with _Selected(device) as cuda:
         free, total = cuda.current_context().get_memory_info()
+    if not (np.isfinite(free) and np.isfinite(total)):
+        return None
     return int(free), int(total)
 
 
