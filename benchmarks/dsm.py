@@ -209,7 +209,8 @@ def run_case(name: str, workers: int, run_dir: Path, chunk: int, timeout: float,
     how = scheduler_args(scheduler, workers, run_dir)
     argv = [str(TILEDSM), "dsm", *args, "--out", str(out), *how, "--chunk", str(chunk), "--no-progress"]
     planned = planned_worker_mib(argv)
-    m = measure(argv, log=out.with_suffix(".log"), timeout=timeout)
+    log = out.with_suffix(".log")
+    m = measure(argv, log=log, timeout=timeout)
     row = {"case": name, "scheduler": scheduler, "workers": workers, "chunk": chunk, **info,
            "planned_worker_mib": planned, "measurement": m.to_dict()}
     if m.ok:
@@ -235,7 +236,6 @@ def run_case(name: str, workers: int, run_dir: Path, chunk: int, timeout: float,
             levels=metrics["timings"].get("levels"),
         )
     else:  # the log's end where the run folder does not outlive the run (a lent GPU machine)
-        log = out.with_suffix(".log")
         tail = log.read_text(errors="replace").splitlines()[-15:] if log.exists() else []
         print(f"{name} on {device}, {workers} {scheduler} workers failed (rc {m.returncode}); end of {log}:",
               *tail, sep="\n", file=sys.stderr)

@@ -330,7 +330,9 @@ def main(argv: list[str] | None = None) -> int:
                       "--device", args.device, "--no-progress"]
         load_before = os.getloadavg()
         t0 = time.perf_counter()
-        done = subprocess.run(argv_child, env=dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))), capture_output=True, text=True)
+        # this tree first, the caller's path after it (a GPU machine's wheels)
+        path = os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))
+        done = subprocess.run(argv_child, env=dict(os.environ, PYTHONPATH=path), capture_output=True, text=True)
         wall = time.perf_counter() - t0
         if done.returncode != 0:
             raise SystemExit(f"{' '.join(argv_child)} failed:\n{done.stderr[-3000:]}")
