@@ -172,7 +172,11 @@ def coarse_level(views, grid, h_range, levels, params, work: Path) -> np.ndarray
         staged.tokens.compute()
         from tiledsm.match.sgm import remove_speckles
 
-        h = np.asarray(zarr.open_array(store=str(staged.level.store.live_path), path="height", mode="r")[...])
+        store = staged.level.store
+        if hasattr(store, "live_path"):  # a package (--src) whose level stores were zarr
+            h = np.asarray(zarr.open_array(store=str(store.live_path), path="height", mode="r")[...])
+        else:
+            h = store.read(0, store.shape[0], 0, store.shape[1], "height")
         layout = staged.level.layout
         return remove_speckles(h, layout.speckle_max_diff, layout.speckle_size) if layout.speckle_size > 1 else h
 

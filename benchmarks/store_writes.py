@@ -3,17 +3,21 @@
     nice -n 5 .venv/bin/python benchmarks/store_writes.py [--threads 1 2 16] [--repeat 3]
 
 Each task of ``tiledsm dsm``'s level stages writes its block of every
-variable and its completion marker (:meth:`tiledsm.io.ChunkStore.write_block`).
-This script writes the 64 blocks of a 4096² store of two float32
-variables (``height``, ``confidence``; chunks of 512, zarr v3 with the
-project's codec) from a pool of ``--threads`` threads, one task per
-block, in two ways:
+variable and marks it done. This script writes the 64 blocks of a 4096²
+store of two float32 variables (``height``, ``confidence``; blocks of
+512, Blosc LZ4 after a shuffle) from a pool of ``--threads`` threads, one
+task per block, in three ways:
 
-- **opened once**: the arrays opened once per process
-  (:func:`tiledsm.io.open_store_array`, what the stages do);
-- **opened per write**: ``zarr.open_array`` before every write (what they
-  did before 2026-11-27: each opening reads and parses the array's
-  metadata through zarr's one I/O thread).
+- **block files**: one file per block, compressed and written by the
+  task's thread (:class:`tiledsm.io.BlockFiles`, what the stages do since
+  2026-11-28), with the block's two counts and the task's mark;
+- **zarr, opened once**: a resumable zarr store
+  (:meth:`tiledsm.io.ChunkStore.write_block`, the arrays opened once per
+  process by :func:`tiledsm.io.open_store_array`; what the stages did
+  before, without their three one-cell writes of counts and marks);
+- **zarr, opened per write**: the same with ``zarr.open_array`` before
+  every write (what they did before 2026-11-27: each opening reads and
+  parses the array's metadata through zarr's one I/O thread).
 
 It prints, per way and thread count, the wall time of the 64 tasks
 (median of ``--repeat``) and the mean wall time of one task, checks that
@@ -45,8 +49,41 @@ def _opened_per_write(store, path, mode="r"):
     return zarr.open_array(store=str(store), path=path, mode=mode)
 
 
+#: the ways a task's block is written (see the module docstring)
+WAYS = ("block files", "zarr, opened once", "zarr, opened per write")
+
+
+def run_block_files(threads: int, root: Path, size: int = 4096, chunk: int = 512) -> dict:
+    """:func:`run` with :class:`tiledsm.io.BlockFiles`."""
+    from tiledsm.io import BlockFiles
+
+    store = BlockFiles(root / f"b{threads}{time.perf_counter_ns()}.blocks", ("height", "confidence"), (size, size),
+                       chunk)
+    store.prepare({"fingerprint": "benchmark", "tasks": list(store.numblocks)})
+    blocks = [(i, j) for i in range(store.numblocks[0]) for j in range(store.numblocks[1])]
+    values = np.random.default_rng(0).random((2, chunk, chunk)).astype(np.float32)
+
+    def task(ij):
+        t0 = time.perf_counter()
+        i, j = ij
+        store.write_block(i, j, {"height": values[0] + i, "confidence": values[1] + j}, counts=(i, j))
+        store.mark_computed(i, j)
+        return time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(threads) as pool:
+        task_s = list(pool.map(task, blocks))
+    wall = time.perf_counter() - t0
+    ok = bool(store.done().all()) and store.computed() == len(blocks) and all(
+        np.array_equal(store.read(i * chunk, (i + 1) * chunk, j * chunk, (j + 1) * chunk, "height"), values[0] + i)
+        and np.array_equal(store.read(i * chunk, (i + 1) * chunk, j * chunk, (j + 1) * chunk, "confidence"),
+                           values[1] + j)
+        for i, j in blocks[:: max(1, len(blocks) // 8)])
+    return {"wall_s": wall, "task_s": statistics.fmean(task_s), "values_ok": ok}
+
+
 def run(threads: int, per_write: bool, root: Path, size: int = 4096, chunk: int = 512) -> dict:
-    """Write every block of a fresh store from ``threads`` threads: the
+    """Write every block of a fresh zarr store from ``threads`` threads: the
     wall seconds, the mean seconds of a task, and whether the values read
     back are the ones written."""
     from unittest import mock
@@ -92,20 +129,25 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     with tempfile.TemporaryDirectory(dir=REPO / "runs" if (REPO / "runs").is_dir() else None) as tmp:
         for threads in args.threads:
-            for per_write in (False, True):
-                runs = [run(threads, per_write, Path(tmp)) for _ in range(args.repeat)]
-                rows.append({"threads": threads, "opened": "per write" if per_write else "once",
-                             "tasks": 64, "wall_s_median": round(statistics.median(r["wall_s"] for r in runs), 4),
-                             "task_ms_median": round(1e3 * statistics.median(r["task_s"] for r in runs), 2),
-                             "values_ok": all(r["values_ok"] for r in runs)})
+            # the ways alternate within each repeat: load on the machine falls on all of them alike
+            runs: dict[str, list] = {way: [] for way in WAYS}
+            for _ in range(args.repeat):
+                for way in WAYS:
+                    runs[way].append(run_block_files(threads, Path(tmp)) if way == WAYS[0]
+                                     else run(threads, way == WAYS[2], Path(tmp)))
+            for way in WAYS:
+                rows.append({"threads": threads, "way": way, "tasks": 64,
+                             "wall_s_median": round(statistics.median(r["wall_s"] for r in runs[way]), 4),
+                             "task_ms_median": round(1e3 * statistics.median(r["task_s"] for r in runs[way]), 2),
+                             "values_ok": all(r["values_ok"] for r in runs[way])})
                 print(rows[-1], flush=True)
-    once = {r["threads"]: r for r in rows if r["opened"] == "once"}
+    files = {r["threads"]: r for r in rows if r["way"] == WAYS[0]}
     for r in rows:
-        r["wall_ratio_to_once"] = round(r["wall_s_median"] / once[r["threads"]]["wall_s_median"], 3)
-    lines = ["| threads | arrays opened | 64 tasks, wall (s) | one task (ms) | wall / opened once | values |",
+        r["wall_ratio_to_block_files"] = round(r["wall_s_median"] / files[r["threads"]]["wall_s_median"], 3)
+    lines = ["| threads | written as | 64 tasks, wall (s) | one task (ms) | wall / block files | values |",
              "|---|---|---|---|---|---|"]
-    lines += [f"| {r['threads']} | {r['opened']} | {r['wall_s_median']:.2f} | {r['task_ms_median']:.1f} | "
-              f"{r['wall_ratio_to_once']:.2f} | {'ok' if r['values_ok'] else '**differ**'} |" for r in rows]
+    lines += [f"| {r['threads']} | {r['way']} | {r['wall_s_median']:.2f} | {r['task_ms_median']:.1f} | "
+              f"{r['wall_ratio_to_block_files']:.2f} | {'ok' if r['values_ok'] else '**differ**'} |" for r in rows]
     table = "\n".join(lines)
     print(table)
     write_result(Path(args.json), "store_writes", "benchmarks/store_writes.py " + " ".join(argv or sys.argv[1:]),

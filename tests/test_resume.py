@@ -88,11 +88,11 @@ def done_count(partial: Path) -> int | None:
         return None
 
 
-def done_array(store: Path) -> np.ndarray:
-    """The ``_progress/done`` markers of a resumable store (blocks)."""
-    import zarr
+def level_done(store: Path) -> np.ndarray:
+    """Which blocks of a DSM level's store (:class:`tiledsm.io.BlockFiles`) are written."""
+    from tiledsm.io import BlockFiles
 
-    return np.asarray(zarr.open_array(store=str(store), path="_progress/done", mode="r")[...]).astype(bool)
+    return BlockFiles.open(store).done()
 
 
 def _chunk_done(blocks: np.ndarray, chunks: tuple[int, ...], i: int, j: int, side: int = 90) -> bool:
@@ -111,7 +111,7 @@ def chunks_done(store: Path, chunks: tuple[int, ...] | None = None) -> int:
     done in ``store`` (0 while it is not there or not readable)."""
     chunks = chunks or L0_CHUNKS
     try:
-        blocks = done_array(store)
+        blocks = level_done(store)
     except Exception:
         return 0
     return sum(_chunk_done(blocks, chunks, i, j) for i in range(len(chunks)) for j in range(len(chunks)))
@@ -194,7 +194,7 @@ def test_killed_run_resumes_its_finished_chunks(scene, tmp_path):
     cmd = run_cmd(rec, out)
     partial = out / "dsm.zarr.partial"
     levels = out / "dsm.levels"
-    matching = levels / "L0.zarr.partial"
+    matching = levels / "L0.blocks"
     with open(tmp_path / "first.log", "w") as log:
         p = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
         try:
@@ -219,9 +219,9 @@ def test_killed_run_resumes_its_finished_chunks(scene, tmp_path):
     d = done_count(partial)
     assert partial.exists() and not (out / "dsm.zarr").exists() and d < TOTAL
     assert not (out / "metrics.json").exists() and not (out / "recipe.resolved.yaml").exists()
-    # the level stores stay partial; the finest one was partly matched (and
+    # the level stores stay; the finest one was partly matched (and
     # the coarse level as far as its finer chunks needed it, here all of it)
-    k1 = chunks_done(levels / "L1.zarr.partial", L1_CHUNKS)
+    k1 = chunks_done(levels / "L1.blocks", L1_CHUNKS)
     assert k1 == len(L1_CHUNKS) ** 2
     k = chunks_done(matching)
     total = len(L0_CHUNKS) ** 2

@@ -16,12 +16,12 @@ from pathlib import Path
 import dask
 import numpy as np
 import pytest
-import zarr
 
 from tiledsm.dsm import DSMParams, open_views, prepare_views
 from tiledsm.dsm.engine import dsm_from_views
 from tiledsm.dsm.levels import level_geometry
 from tiledsm.dsm.stages import stage_reports
+from tiledsm.io import BlockFiles
 from tiledsm.io.grids import grid_like
 from tiledsm.synth import make_scene
 
@@ -46,7 +46,8 @@ def _compute(ds) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _stored(path: Path) -> np.ndarray:
-    return np.asarray(zarr.open_array(store=str(path), path="height", mode="r")[...])
+    store = BlockFiles.open(path)
+    return store.read(0, store.shape[0], 0, store.shape[1], "height")
 
 
 def _layer(graph, prefix: str) -> str:
@@ -111,11 +112,11 @@ def test_staged_levels_give_the_plain_graphs_dsm(scene, tmp_path, levels, chunk,
     np.testing.assert_array_equal(again[0], plain[0])
     np.testing.assert_array_equal(again[1], plain[1])
     stores = sorted(p.name for p in (tmp_path / "levels").iterdir())
-    assert stores == [f"L{level}.zarr.partial" for level in range(levels)]
-    coarse = _stored(tmp_path / "levels" / "L1.zarr.partial")
+    assert stores == [f"L{level}.blocks" for level in range(levels)]
+    coarse = _stored(tmp_path / "levels" / "L1.blocks")
     assert coarse.shape == (192, 192) and np.isfinite(coarse).mean() > 0.8
     # the finest store holds the heights before the speckle filter: it removed some
-    raw = _stored(tmp_path / "levels" / "L0.zarr.partial")
+    raw = _stored(tmp_path / "levels" / "L0.blocks")
     assert np.isfinite(raw).sum() > np.isfinite(staged[0]).sum()
     reports = stage_reports(tmp_path / "levels")
     assert {name: (r["chunks_total"], r["chunks_reused"]) for name, r in reports.items()} == {
@@ -149,7 +150,7 @@ def test_without_a_stage_dir_the_same_engine_uses_a_folder_of_its_own(scene, tmp
     setup = [v for k, v in dict(ds.__dask_graph__()).items() if isinstance(k, str) and k.startswith("stage-setup-L0-")]
     folder = Path(_store_folder(setup[0]))
     got = _compute(ds)
-    assert sorted(p.name for p in folder.iterdir()) == ["L0.zarr.partial", "L1.zarr.partial"]
+    assert sorted(p.name for p in folder.iterdir()) == ["L0.blocks", "L1.blocks"]
     staged = _compute(dsm_from_views(views, grid, h_range, params, stage_dir=tmp_path / "levels"))
     np.testing.assert_array_equal(got[0], staged[0])
     np.testing.assert_array_equal(got[1], staged[1])
@@ -159,10 +160,8 @@ def test_without_a_stage_dir_the_same_engine_uses_a_folder_of_its_own(scene, tmp
 
 
 def _store_folder(task) -> str:
-    """The folder of the store a level's setup task creates (its first argument, a ChunkStore)."""
-    from tiledsm.io import ChunkStore
-
-    (store,) = [a for a in getattr(task, "args", ()) if isinstance(a, ChunkStore)]
+    """The folder of the store a level's setup task creates (its first argument, a BlockFiles)."""
+    (store,) = [a for a in getattr(task, "args", ()) if isinstance(a, BlockFiles)]
     return str(Path(store.path).parent)
 
 
@@ -196,20 +195,20 @@ def test_staged_level_keeps_its_finished_blocks_and_drops_a_stale_store(scene, t
     views, grid, h_range, params = _inputs(scene, 2, 64)
     stage = tmp_path / "levels"
     _compute(dsm_from_views(views, grid, h_range, params, stage_dir=stage))
-    store = stage / "L1.zarr.partial"
+    store = stage / "L1.blocks"
     first = _stored(store)
-    heights = zarr.open_array(store=str(store), path="height", mode="r+")
-    done = zarr.open_array(store=str(store), path="_progress/done", mode="r+")
-    b = heights.chunks[0]  # the level's chunk side: 90 cells (the halos' floor), 192 = 90 + 90 + 12
-    assert b == 90 and done.shape == (3, 3) and np.asarray(done[...]).all()
-    heights[0:b, 0:b] = 1234.0  # block (0, 0): kept as finished
-    heights[b : 2 * b, b : 2 * b] = 1234.0  # block (1, 1): marked pending, so recomputed
-    done[1, 1] = 0
+    blocks = BlockFiles.open(store)
+    b = blocks.side  # the level's chunk side: 90 cells (the halos' floor), 192 = 90 + 90 + 12
+    assert b == 90 and blocks.numblocks == (3, 3) and blocks.done().all()
+    planted = np.full((b, b), 1234.0, np.float32)
+    blocks.write_block(0, 0, {"height": planted})  # block (0, 0): kept as finished
+    (store / "1_1.blk").unlink()  # block (1, 1): not written, so matched again
+    assert not blocks.done()[1, 1]
     _compute(dsm_from_views(views, grid, h_range, params, stage_dir=stage))
     again = _stored(store)
     assert (again[0:b, 0:b] == 1234.0).all()
     np.testing.assert_array_equal(again[b : 2 * b, b : 2 * b], first[b : 2 * b, b : 2 * b])
-    assert np.asarray(zarr.open_array(store=str(store), path="_progress/done", mode="r")[...]).all()
+    assert blocks.done().all()
     # L1's 2 x 2 matching chunks: the one writing block (1, 1) ran again; every L0 chunk was reused
     reports = stage_reports(stage)
     assert {name: (r["chunks_total"], r["chunks_reused"]) for name, r in reports.items()} == {"L1": (4, 3), "L0": (16, 16)}
@@ -219,5 +218,5 @@ def test_staged_level_keeps_its_finished_blocks_and_drops_a_stale_store(scene, t
     _compute(dsm_from_views(views, grid, other.height_range, other, stage_dir=stage))
     rebuilt = _stored(store)
     assert not (rebuilt[0:b, 0:b] == 1234.0).any()
-    fp = json.loads(zarr.open_group(str(store), mode="r").attrs["stage_fingerprint"])
+    fp = json.loads(BlockFiles.open(store).attrs()["fingerprint"])
     assert fp["level"] == 1 and fp["dsm"]["height_range"] == list(other.height_range)

@@ -2,8 +2,9 @@
 that a worker's memory does not grow with the scene, built with dask's
 public array API only.
 
-Each level is matched into a resumable zarr store
-(:class:`~tiledsm.io.ChunkStore`, one block per matching chunk) by one
+Each level is matched into a folder of block files
+(:class:`~tiledsm.io.BlockFiles`, one block per matching chunk, each
+written and read by its task's own thread) by one
 ``map_blocks`` over its chunk grid whose tasks write their chunk and
 return a one-cell token (:func:`stage_level`); every later task reads the
 window it needs from the store: a finer level its coarse heights, the
@@ -23,13 +24,12 @@ the DSM does not depend on the chunks (tested against a plain graph in
 ``tests/dsm/plain_graph.py``).
 
 A store's blocks finished by an interrupted run are kept: the tasks of
-blocks already marked done return at once. The store records which of its
+blocks already written return at once. The store records which of its
 chunks this run computed and the candidate heights of its searched cells
-(:func:`stage_reports`). The level stores stay partial (``L<level>.zarr.partial``):
-nothing marks a level finished, as its readers may still run, and the run
-removes them once the DSM store is finished. Stores carry the DSM's
-fingerprint (``stage_fingerprint``); one computed from anything else is
-discarded when its level is set up.
+(:func:`stage_reports`). The level stores (``L<level>.blocks``) are
+scratch: the run removes them once the DSM store is finished. Stores
+carry the DSM's fingerprint; one computed from anything else is discarded
+when its level is set up.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ import json
 import shutil
 import tempfile
 import weakref
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Sequence
@@ -52,7 +52,7 @@ from tiledsm.dsm.layout import LevelLayout, chunk_window
 from tiledsm.dsm.levels import LevelGeometry, match_task
 from tiledsm.dsm.params import DSMParams
 from tiledsm.dsm.views import View
-from tiledsm.io import ChunkStore, open_store_array
+from tiledsm.io import BlockFiles
 
 __all__ = ["LEVELS_DIR", "LevelStore", "StagedLevel", "ScratchFolder", "stage_level", "finest_from_stage",
            "stage_reports"]
@@ -60,12 +60,6 @@ __all__ = ["LEVELS_DIR", "LevelStore", "StagedLevel", "ScratchFolder", "stage_le
 #: the folder of a run's level stores, beside ``dsm.zarr`` (removed once
 #: the DSM store is finished)
 LEVELS_DIR = "dsm.levels"
-_FP_ATTR = "stage_fingerprint"
-#: per-block candidate counts (sum over the searched cells, and the cells);
-#: per matching chunk, whether this run computed it (``computed``)
-_COUNTS = "_counts"
-_CANDIDATES = (("candidates", "int64"), ("cells", "int64"))
-_COMPUTED = "computed"
 
 
 @dataclass(frozen=True)
@@ -74,16 +68,18 @@ class LevelStore:
 
     Attributes
     ----------
-    store : ChunkStore
+    store : BlockFiles
         ``height`` (float32 ellipsoidal metres, NaN = none; at the finest
-        level also ``confidence``), blocks of the level's chunk side.
+        level also ``confidence``), blocks of the level's chunk side, each
+        with the candidate heights summed over its searched cells and
+        their count.
     geom : LevelGeometry
         The level.
     layout : LevelLayout
         Its chunks, halos and depths.
     """
 
-    store: ChunkStore
+    store: BlockFiles
     geom: LevelGeometry
     layout: LevelLayout
 
@@ -134,8 +130,8 @@ def _writer_tokens(tokens: da.Array, rows: Sequence[range], cols: Sequence[range
 
 
 # ------------------------------------------------------------------ windows
-def _read(store: ChunkStore, r0: int, r1: int, c0: int, c1: int, variable: str = "height") -> np.ndarray:
-    return np.asarray(open_store_array(store.live_path, variable, mode="r")[r0:r1, c0:c1])
+def _read(store: BlockFiles, r0: int, r1: int, c0: int, c1: int, variable: str = "height") -> np.ndarray:
+    return store.read(r0, r1, c0, c1, variable)
 
 
 def coarse_heights(coarser: LevelStore, layout: LevelLayout, i: int, j: int) -> np.ndarray:
@@ -165,40 +161,13 @@ def coarse_heights(coarser: LevelStore, layout: LevelLayout, i: int, j: int) -> 
 
 
 # ------------------------------------------------------------------ tasks
-def _setup(store: ChunkStore, fingerprint: str, geom: LevelGeometry, tasks: tuple[int, int], keep=None) -> np.ndarray:
+def _setup(store: BlockFiles, fingerprint: str, tasks: tuple[int, int], keep=None) -> np.ndarray:
     """Create the level's store, or keep it (resume) when it holds the same
-    fingerprint; a store of anything else is discarded. The marks of the
-    ``tasks`` chunks this run computes start at 0. ``keep``: an object the
-    graph must hold while it exists (a :class:`ScratchFolder`)."""
-    import zarr
-
-    from tiledsm.io import create_store
-    from tiledsm.io.atomic import remove_path
-
-    for path in (Path(store.path), store.partial_path):
-        if path.exists():
-            try:
-                stored = zarr.open_group(str(path), mode="r").attrs.get(_FP_ATTR)
-            except Exception:  # unreadable: not ours to keep
-                stored = None
-            if stored != fingerprint:
-                remove_path(path)
-    template = replace(geom.grid, chunk=store.chunk[0])
-    create_store(store.path, template, {v: "float32" for v in store.variables}, attrs={_FP_ATTR: fingerprint})
-    # per block: the candidate heights summed over its searched cells, and their count
-    group = zarr.open_group(str(store.live_path), mode="a")
-    counts = group.require_group(_COUNTS)
-    for name, dtype in _CANDIDATES:
-        if name not in counts:
-            counts.create_array(name, shape=store.numblocks, chunks=(1, 1), dtype=dtype, fill_value=0)
-    # one zarr chunk per task: tasks mark theirs concurrently
-    counts.create_array(_COMPUTED, shape=tasks, chunks=(1, 1), dtype="uint8", fill_value=0, overwrite=True)
+    fingerprint; a store of anything else is discarded. No task of the
+    ``tasks`` chunks is marked computed yet. ``keep``: an object the graph
+    must hold while it exists (a :class:`ScratchFolder`)."""
+    store.prepare({"fingerprint": fingerprint, "tasks": list(tasks)})
     return np.ones((1, 1), bool)
-
-
-def _blocks(store: ChunkStore, r0: int, r1: int, c0: int, c1: int) -> list[tuple[int, int]]:
-    cy, cx = store.chunk
-    return [(bi, bj) for bi in range(r0 // cy, -(-r1 // cy)) for bj in range(c0 // cx, -(-c1 // cx))]
 
 
 def _staged_task(*_ready, block_id, coarser, level, views, h_range, params) -> np.ndarray:
@@ -209,22 +178,18 @@ def _staged_task(*_ready, block_id, coarser, level, views, h_range, params) -> n
     store, layout = level.store, level.layout
     i, j = block_id
     r0, r1, c0, c1 = layout.chunk_cells(i, j)
-    blocks = _blocks(store, r0, r1, c0, c1)
+    blocks = store.blocks_under(r0, r1, c0, c1)
     if store.blocks_done(blocks):
         return np.zeros((1, 1), bool)
     coarse = None if coarser is None else coarse_heights(coarser, layout, i, j)
     details: dict = {}
     res = match_task(coarse, views, level.geom, layout, h_range, params, i, j, details=details)
-    where = str(store.live_path)
     for bi, bj in blocks:
         w0, w1, v0, v1 = store.block_window(bi, bj)
         cand = details["candidates"][w0 - r0 : w1 - r0, v0 - c0 : v1 - c0]
-        # before the block is marked done (write_block), so a done block has its counts
-        open_store_array(where, f"{_COUNTS}/candidates", mode="r+")[bi, bj] = int(cand.sum())
-        open_store_array(where, f"{_COUNTS}/cells", mode="r+")[bi, bj] = int((cand > 0).sum())
         part = res[:, w0 - r0 : w1 - r0, v0 - c0 : v1 - c0]
-        store.write_block(bi, bj, dict(zip(store.variables, part)))
-    open_store_array(where, f"{_COUNTS}/{_COMPUTED}", mode="r+")[i, j] = 1
+        store.write_block(bi, bj, dict(zip(store.variables, part)), counts=(int(cand.sum()), int((cand > 0).sum())))
+    store.mark_computed(i, j)
     return np.ones((1, 1), bool)
 
 
@@ -260,19 +225,19 @@ def stage_level(
     keep: ScratchFolder | None = None,
 ) -> StagedLevel:
     """The graph that matches level ``geom`` in ``layout``'s chunks into
-    ``stage_dir/L<level>.zarr`` (searching around ``coarser``'s stored
+    ``stage_dir/L<level>.blocks`` (searching around ``coarser``'s stored
     heights, or the whole height range at the coarsest level): heights at
     a coarse level, heights and confidence at the finest. ``keep`` rides
     along in the level's setup task (:class:`ScratchFolder`)."""
     side = layout.side
     variables = ("height", "confidence") if geom.level == 0 else ("height",)
-    store = ChunkStore(str(Path(stage_dir) / f"L{geom.level}.zarr"), variables, layout.shape, (side, side))
+    store = BlockFiles(Path(stage_dir) / f"L{geom.level}.blocks", variables, layout.shape, side)
     level = LevelStore(store, geom, layout)
     fp = json.dumps({"dsm": json.loads(fingerprint), "level": geom.level}, sort_keys=True)
     # one DSM's tasks apart from another's (two epochs may share a graph)
     token = tokenize(fp, store.path)
     setup = da.from_delayed(
-        dask.delayed(_setup)(store, fp, geom, layout.numblocks, keep,
+        dask.delayed(_setup)(store, fp, layout.numblocks, keep,
                              dask_key_name=f"stage-setup-L{geom.level}-{token}"),
         shape=(1, 1), dtype=bool, meta=np.empty((0, 0), bool),
     )
@@ -314,19 +279,16 @@ def stage_reports(stage_dir: Path) -> dict[str, dict]:
     once a run has matched them: what it computed, what it took from an
     earlier run, and how many candidate heights a searched cell had on
     average (the cost of matching follows it)."""
-    import zarr
-
     out = {}
-    for path in sorted(Path(stage_dir).glob("L*.zarr*")):
-        where = f"{_COUNTS}/"
-        try:
-            computed = np.asarray(zarr.open_array(store=str(path), path=where + _COMPUTED, mode="r")[...])
-            n, cells = (int(np.asarray(zarr.open_array(store=str(path), path=where + k, mode="r")[...]).sum())
-                        for k, _ in _CANDIDATES)
-        except Exception:  # not a level store of ours
+    for path in sorted(Path(stage_dir).glob("L*.blocks")):
+        attrs = BlockFiles(path, (), (0, 0), 1).attrs()
+        if not attrs or "tasks" not in attrs:  # not a level store of ours
             continue
+        store = BlockFiles.open(path)
+        total = int(np.prod(attrs["tasks"]))
+        n, cells = (int(v) for v in store.counts())
         out[path.name.split(".")[0]] = {
-            "chunks_total": int(computed.size), "chunks_reused": int(computed.size - computed.sum()),
+            "chunks_total": total, "chunks_reused": total - store.computed(),
             "cells_searched": cells, "mean_candidates_per_cell": n / cells if cells else None,
         }
     return out

@@ -37,7 +37,8 @@ Conventions
   pending and it is recomputed on resume. xarray ignores the ``_progress``
   sub-group when reading the store.
 
-The package: :mod:`.atomic` (atomic writes), :mod:`.cameras` (RPC files read
+The package: :mod:`.atomic` (atomic writes), :mod:`.blockfiles` (a grid's
+blocks as files, written by many threads at once), :mod:`.cameras` (RPC files read
 and written, camera discovery), :mod:`.geoid` (geoid grids), :mod:`.grids`
 (the ground grid of a raster), :mod:`.opened` (zarr arrays opened once per
 process), :mod:`.scenes` (images and their cameras), :mod:`.stores` (zarr
@@ -50,6 +51,7 @@ from tiledsm.io.scenes import open_scene, scene_rpc
 from tiledsm.io.atomic import atomic_path, withdraw
 from tiledsm.io.stores import write_zarr, open_product, open_raster_product, ChunkStore, create_store, write_blocks, write_resumable
 from tiledsm.io.opened import open_store_array
+from tiledsm.io.blockfiles import BlockFiles
 from tiledsm.io.export import exports_alongside, write_cog, write_geotiff_with_rpc
 
 __all__ = [
@@ -70,4 +72,5 @@ __all__ = [
     "write_blocks",
     "write_resumable",
     "open_store_array",
+    "BlockFiles",
 ]
