@@ -10,7 +10,7 @@ task per block, in three ways:
 
 - **block files**: one file per block, compressed and written by the
   task's thread (:class:`tiledsm.io.BlockFiles`, what the stages do since
-  2026-11-28), with the block's two counts and the task's mark;
+  2026-11-27), with the block's two counts and the task's mark;
 - **zarr, opened once**: a resumable zarr store
   (:meth:`tiledsm.io.ChunkStore.write_block`, the arrays opened once per
   process by :func:`tiledsm.io.open_store_array`; what the stages did

@@ -13,8 +13,10 @@ and each thread decompresses what it reads; both release the GIL.
 Layout of a folder::
 
     meta.json        shape, block side, variables, attrs (a fingerprint)
-    <i>_<j>.blk      block (i, j): 16-byte header (two int64 counts), then
-                     the compressed float32 values (variables, rows, cols)
+    <i>_<j>.blk      block (i, j): a header of int64 (two counts, then the
+                     compressed size of each variable), then each
+                     variable's float32 (rows, cols), compressed apart
+                     (a reader of one variable decompresses only it)
     computed/<i>_<j> empty: task (i, j) was computed by this run
 
 A block file appears complete or not at all (written beside, then
@@ -39,7 +41,7 @@ from tiledsm.errors import InputFileError
 __all__ = ["BlockFiles"]
 
 _FORMAT = "tiledsm-block-files-1"
-_HEADER = 16  # two int64 counts
+_COUNTS = 2  # int64 counts at the head of a block file
 _COMPUTED = "computed"
 
 
@@ -161,17 +163,17 @@ class BlockFiles:
             A variable is missing or has another shape than the block.
         """
         r0, r1, c0, c1 = self.block_window(i, j)
-        block = np.empty((len(self.variables), r1 - r0, c1 - c0), np.float32)
-        for k, name in enumerate(self.variables):
+        payloads = []
+        for name in self.variables:
             if name not in values:
                 raise ValueError(f"{self.path}: block ({i}, {j}) lacks variable {name!r}")
             v = np.asarray(values[name])
-            if v.shape != block.shape[1:]:
+            if v.shape != (r1 - r0, c1 - c0):
                 raise ValueError(f"{self.path}: block ({i}, {j}) of {name!r} has shape {v.shape}, "
-                                 f"expected {block.shape[1:]}")
-            block[k] = v
-        header = np.array(counts, np.int64).tobytes()
-        self._replace(self._file(i, j), [header, bytes(_codec().encode(block))])
+                                 f"expected {(r1 - r0, c1 - c0)}")
+            payloads.append(bytes(_codec().encode(np.ascontiguousarray(v, np.float32))))
+        header = np.array([*counts, *(len(p) for p in payloads)], np.int64).tobytes()
+        self._replace(self._file(i, j), [header, *payloads])
 
     def mark_computed(self, i: int, j: int) -> None:
         """Mark task ``(i, j)`` as computed by this run."""
@@ -189,17 +191,20 @@ class BlockFiles:
             out[i, j] = self._file(i, j).exists()
         return out
 
-    def _block(self, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(counts, values)`` of block ``(i, j)``."""
+    def _block(self, i: int, j: int, k: int) -> np.ndarray:
+        """Variable ``k`` of block ``(i, j)``."""
         path = self._file(i, j)
         try:
             raw = path.read_bytes()
         except FileNotFoundError:
             raise InputFileError(f"{path}: block ({i}, {j}) is not written") from None
+        n = _COUNTS + len(self.variables)
+        sizes = np.frombuffer(raw[: 8 * n], np.int64)[_COUNTS:]
+        start = 8 * n + int(sizes[:k].sum())
         r0, r1, c0, c1 = self.block_window(i, j)
-        values = np.empty((len(self.variables), r1 - r0, c1 - c0), np.float32)
-        _codec().decode(memoryview(raw)[_HEADER:], out=values)
-        return np.frombuffer(raw[:_HEADER], np.int64), values
+        out = np.empty((r1 - r0, c1 - c0), np.float32)
+        _codec().decode(memoryview(raw)[start : start + int(sizes[k])], out=out)
+        return out
 
     def read(self, r0: int, r1: int, c0: int, c1: int, variable: str | None = None) -> np.ndarray:
         """Cells ``[r0:r1, c0:c1]`` (inside the grid) of ``variable`` (the
@@ -215,7 +220,7 @@ class BlockFiles:
         for bi, bj in self.blocks_under(r0, r1, c0, c1):
             w0, w1, v0, v1 = self.block_window(bi, bj)
             a0, a1, b0, b1 = max(w0, r0), min(w1, r1), max(v0, c0), min(v1, c1)
-            out[a0 - r0 : a1 - r0, b0 - c0 : b1 - c0] = self._block(bi, bj)[1][k, a0 - w0 : a1 - w0, b0 - v0 : b1 - v0]
+            out[a0 - r0 : a1 - r0, b0 - c0 : b1 - c0] = self._block(bi, bj, k)[a0 - w0 : a1 - w0, b0 - v0 : b1 - v0]
         return out
 
     def counts(self) -> np.ndarray:
@@ -223,7 +228,7 @@ class BlockFiles:
         total = np.zeros(2, np.int64)
         for path in self.path.glob("*.blk"):
             with open(path, "rb") as f:
-                total += np.frombuffer(f.read(_HEADER), np.int64)
+                total += np.frombuffer(f.read(8 * _COUNTS), np.int64)
         return total
 
     def computed(self) -> int:

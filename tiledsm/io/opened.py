@@ -20,11 +20,10 @@ def open_store_array(store: str | os.PathLike, path: str, mode: str = "r"):
     process while the array's ``zarr.json`` stays the same file.
 
     Opening reads and parses the metadata through zarr's I/O loop, one
-    thread for the whole process. A matching task writes six arrays (its
-    block's heights and confidence, two counts, two markers) and reads
-    others; with sixteen threads opening them afresh each time, 9 % of the
+    thread for the whole process: with sixteen threads opening the arrays
+    of the DSM's level stores (then zarr) afresh for each task, 9 % of the
     tasks' stack samples stood there
-    (``benchmarks/results/dsm_phases_gpu.json``), and a task's block writes
+    (``benchmarks/results/dsm_phases_gpu.json``), and a block's writes
     took 1.5-1.75x as long as with the arrays opened once
     (``benchmarks/store_writes.py``). An array is opened again when its
     metadata file was replaced (another inode, size or modification time:
