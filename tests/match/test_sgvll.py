@@ -175,3 +175,37 @@ def test_search_from_coarse_blocks_equal_whole():
         np.testing.assert_array_equal(got, whole[:, 2 * r0 : 2 * r1, 2 * c0 : 2 * c1])
     with pytest.raises(MatchingError, match="halo"):
         search_from_coarse(padded, d - 1, 1.5, (80.0, 130.0), p)
+
+
+@pytest.mark.parametrize("holes", ["none", "scattered", "one big", "at the edges", "halo only", "all"])
+def test_search_from_coarse_fills_holes_as_the_whole_window_would(holes):
+    """The means are computed over the cells they serve only: the band is
+    the one computed with both over the whole window, bit for bit (the
+    whole-window arithmetic: ``benchmarks/search_band.py``, which times
+    the two)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+    from benchmarks.search_band import whole_window
+
+    rng = np.random.default_rng(1)
+    p = SearchParams()
+    d = search_halo(p)
+    coarse = 100 + np.cumsum(rng.normal(size=(70 + 2 * d, 64 + 2 * d)), axis=0)
+    if holes == "scattered":
+        coarse[rng.random(coarse.shape) < 0.3] = np.nan
+        coarse[40:48, 20:29] = np.nan
+    elif holes == "one big":
+        coarse[d + 10 : d + 50, d + 5 : d + 45] = np.nan  # its middle lies beyond the fill support
+    elif holes == "at the edges":
+        coarse[:, : d + 3] = np.nan  # beyond the grid, into the core
+        coarse[-d - 9 :, -d - 9 :] = np.nan
+    elif holes == "halo only":
+        coarse[: d - 4, :] = np.nan
+    elif holes == "all":
+        coarse[...] = np.nan
+    got = search_from_coarse(coarse, d, 1.5, (60.0, 200.0), p)
+    np.testing.assert_array_equal(got, whole_window(coarse, d, 1.5, (60.0, 200.0), p))
+    if holes == "one big":
+        assert np.isnan(got[0]).any() and np.isfinite(got[0]).mean() > 0.5
