@@ -52,6 +52,7 @@ from tiledsm.dsm.layout import LevelLayout, chunk_window
 from tiledsm.dsm.levels import LevelGeometry, match_task
 from tiledsm.dsm.params import DSMParams
 from tiledsm.dsm.views import View
+from tiledsm.errors import InputFileError
 from tiledsm.io import BlockFiles
 
 __all__ = ["LEVELS_DIR", "LevelStore", "StagedLevel", "ScratchFolder", "stage_level", "finest_from_stage",
@@ -281,10 +282,13 @@ def stage_reports(stage_dir: Path) -> dict[str, dict]:
     average (the cost of matching follows it)."""
     out = {}
     for path in sorted(Path(stage_dir).glob("L*.blocks")):
-        attrs = BlockFiles(path, (), (0, 0), 1).attrs()
-        if not attrs or "tasks" not in attrs:  # not a level store of ours
+        try:
+            store = BlockFiles.open(path)
+        except InputFileError:  # not a level store of ours
             continue
-        store = BlockFiles.open(path)
+        attrs = store.attrs() or {}
+        if "tasks" not in attrs:
+            continue
         total = int(np.prod(attrs["tasks"]))
         n, cells = (int(v) for v in store.counts())
         out[path.name.split(".")[0]] = {

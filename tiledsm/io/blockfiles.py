@@ -37,18 +37,13 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from tiledsm.errors import InputFileError
+from tiledsm.io.codecs import block_codec
 
 __all__ = ["BlockFiles"]
 
 _FORMAT = "tiledsm-block-files-1"
 _COUNTS = 2  # int64 counts at the head of a block file
 _COMPUTED = "computed"
-
-
-def _codec():
-    from numcodecs import Blosc
-
-    return Blosc(cname="lz4", clevel=5, shuffle=Blosc.SHUFFLE)
 
 
 def _meta(folder: Path) -> dict | None:
@@ -171,7 +166,7 @@ class BlockFiles:
             if v.shape != (r1 - r0, c1 - c0):
                 raise ValueError(f"{self.path}: block ({i}, {j}) of {name!r} has shape {v.shape}, "
                                  f"expected {(r1 - r0, c1 - c0)}")
-            payloads.append(bytes(_codec().encode(np.ascontiguousarray(v, np.float32))))
+            payloads.append(bytes(block_codec().encode(np.ascontiguousarray(v, np.float32))))
         header = np.array([*counts, *(len(p) for p in payloads)], np.int64).tobytes()
         self._replace(self._file(i, j), [header, *payloads])
 
@@ -203,7 +198,7 @@ class BlockFiles:
         start = 8 * n + int(sizes[:k].sum())
         r0, r1, c0, c1 = self.block_window(i, j)
         out = np.empty((r1 - r0, c1 - c0), np.float32)
-        _codec().decode(memoryview(raw)[start : start + int(sizes[k])], out=out)
+        block_codec().decode(memoryview(raw)[start : start + int(sizes[k])], out=out)
         return out
 
     def read(self, r0: int, r1: int, c0: int, c1: int, variable: str | None = None) -> np.ndarray:

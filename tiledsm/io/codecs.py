@@ -14,16 +14,30 @@ them about a tenth smaller again, at twice LZ4's writing time.
 
 from __future__ import annotations
 
+import functools
 from typing import Iterable
 
-__all__ = ["store_compressors", "store_encoding"]
+__all__ = ["BLOSC", "store_compressors", "block_codec", "store_encoding"]
+
+#: Blosc's settings for every store of the project (zarr's names)
+BLOSC = {"cname": "lz4", "clevel": 5, "shuffle": "shuffle"}
 
 
 def store_compressors() -> tuple:
     """The zarr v3 compressors of a resumable store's variables."""
     from zarr.codecs import BloscCodec
 
-    return (BloscCodec(cname="lz4", clevel=5, shuffle="shuffle"),)
+    return (BloscCodec(**BLOSC),)
+
+
+@functools.cache
+def block_codec():
+    """The same compression as a numcodecs codec, for the block files of
+    :mod:`tiledsm.io.blockfiles` (numcodecs compresses without an event
+    loop, in the calling thread)."""
+    from numcodecs import Blosc
+
+    return Blosc(cname=BLOSC["cname"], clevel=BLOSC["clevel"], shuffle=Blosc.SHUFFLE)
 
 
 def store_encoding(variables: Iterable[str]) -> dict[str, dict]:
