@@ -11,7 +11,8 @@ cells with a height). The variants:
   step`` around the smoothed coarse DSM), with the coarse smoothing ``smooth`` 1 and 3 cells;
 - ``levels=2`` with *absolute* labels (the scene-wide lattice ``k step``, the default; see
   :class:`tiledsm.match.pyramid.SearchParams`), band ``refine_steps`` 4 and 3, smooth 1 and 3, the
-  coarse sweep at twice its level's step (``DSMParams.sweep_step_factor``, the default) or at it.
+  coarse sweep at twice its level's step (``DSMParams.sweep_step_factor``, the default), at it, or
+  at three times it.
 
 Usage::
 
@@ -51,6 +52,9 @@ def _variants():
                                                                    "search": SearchParams(relative_labels=False)}),
         ("2 levels, absolute labels, coarse sweep at the level's own step", {"levels": 2, "refine_steps": 4,
                                                                             "sweep_step_factor": 1.0,
+                                                                            "search": SearchParams(relative_labels=False)}),
+        ("2 levels, absolute labels, coarse sweep at three times its step", {"levels": 2, "refine_steps": 4,
+                                                                            "sweep_step_factor": 3.0,
                                                                             "search": SearchParams(relative_labels=False)}),
         ("2 levels, absolute labels, band 3 steps", {"levels": 2, "refine_steps": 3,
                                                      "search": SearchParams(relative_labels=False)}),

@@ -16,7 +16,8 @@ Layout of a folder::
     <i>_<j>.blk      block (i, j): a header of int64 (two counts, then the
                      compressed size of each variable), then each
                      variable's float32 (rows, cols), compressed apart
-                     (a reader of one variable decompresses only it)
+                     (a reader of one variable reads and decompresses
+                     only its bytes)
     computed/<i>_<j> empty: task (i, j) was computed by this run
 
 A block file appears complete or not at all (written beside, then
@@ -189,16 +190,19 @@ class BlockFiles:
     def _block(self, i: int, j: int, k: int) -> np.ndarray:
         """Variable ``k`` of block ``(i, j)``."""
         path = self._file(i, j)
+        n = _COUNTS + len(self.variables)
         try:
-            raw = path.read_bytes()
+            with open(path, "rb") as f:
+                # the header, then only this variable's bytes (a shared
+                # file system moves half of a two-variable block)
+                sizes = np.frombuffer(f.read(8 * n), np.int64)[_COUNTS:]
+                f.seek(8 * n + int(sizes[:k].sum()))
+                raw = f.read(int(sizes[k]))
         except FileNotFoundError:
             raise InputFileError(f"{path}: block ({i}, {j}) is not written") from None
-        n = _COUNTS + len(self.variables)
-        sizes = np.frombuffer(raw[: 8 * n], np.int64)[_COUNTS:]
-        start = 8 * n + int(sizes[:k].sum())
         r0, r1, c0, c1 = self.block_window(i, j)
         out = np.empty((r1 - r0, c1 - c0), np.float32)
-        block_codec().decode(memoryview(raw)[start : start + int(sizes[k])], out=out)
+        block_codec().decode(raw, out=out)
         return out
 
     def read(self, r0: int, r1: int, c0: int, c1: int, variable: str | None = None) -> np.ndarray:
