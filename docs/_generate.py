@@ -614,6 +614,30 @@ def gpu_phases() -> str:
     return text
 
 
+def kernel_parts() -> str:
+    """Where a matching task's kernel time goes, part by part, on the
+    captured tasks of ``kernel_parts.json``."""
+    doc = json.loads((RESULTS / "kernel_parts.json").read_text())
+    names = {"coarsest": "coarsest level (whole height range)", "level0": "level 0 (band around the coarser DSM)"}
+    rows = []
+    for r in doc["rows"]:
+        s, c, sh = r["ns_per_sample"], r["ns_per_candidate"], r["shares"]
+        rows.append([names.get(r["task"], r["task"]), f"{r['candidates_per_cell']:.1f}",
+                     f"{s['tracks']:.1f} ns ({100 * sh['tracks']:.0f} %)",
+                     f"{s['interpolation']:.1f} ns ({100 * sh['interpolation']:.0f} %)",
+                     f"{c['zncc_and_rest']:.1f} ns ({100 * sh['zncc_and_rest']:.0f} %)",
+                     f"{c['aggregation_and_winners']:.1f} ns ({100 * sh['aggregation_and_winners']:.0f} %)",
+                     f"{c['kernel']:.0f} ns"])
+    sc = doc["scene"]
+    return (f"The compiled kernel's time on the middle task of each level of the synthetic {sc['size']}² scene, one "
+            f"thread, the fastest of {doc['repeat']} turns (`{doc['command']}`, "
+            f"[kernel_parts.json](results.md#kernel_partsjson), {doc['when']}). Tracks and interpolation are per "
+            "sample taken (a cell is sampled in each view at every height its window's cells search), the other "
+            "parts per candidate height of a cell; in brackets, the share of the task's kernel time:\n\n"
+            + _table(["task", "candidates per cell", "tracks (image positions)", "bicubic interpolation",
+                      "ZNCC and the rest of the sweep", "8 paths and winners", "kernel, per candidate"], rows))
+
+
 def memory_page() -> str:
     """How the largest process of a whole run grows with the scene
     (``workflow_memory.json``) and what ``--reference`` adds to ``tiledsm
@@ -720,7 +744,8 @@ def headline_pages() -> dict[str, str]:
         f"{GENERATED}/speed.md": "# Speed\n\nGenerated from `benchmarks/results/*.json` when the site is built, on "
         "the project's 2-core machine (its speed drifts by 30-50 % within an hour: compare runs of one "
         "session only; `benchmarks/dsm_paired.py` measures a change in alternating pairs).\n\n"
-        + headline_table(SPEED) + "\n## Comparing two DSMs\n\n" + compare_table()
+        + headline_table(SPEED) + "\n## Inside a matching task\n\n" + kernel_parts()
+        + "\n## Comparing two DSMs\n\n" + compare_table()
         + "\n## On a GPU machine\n\n" + gpu_table() + "\n" + gpu_phases(),
         f"{GENERATED}/memory.md": memory_page(),
     }
