@@ -301,18 +301,17 @@ def label_cost(buf, line, slot, l, n):
 
 
 @cuda.jit(cache=True)
-def path_kernel(cost, base, nvalid, P1, P2, invalid, di, dj, gi0, gj0, period, round_min, assign, S, buf):
+def path_kernel(cost, base, nvalid, P1, P2, invalid, di, dj, gi0, gj0, period, assign, S, buf):
     """One path line per block: its cells in order, the candidates of
-    a cell spread over the block's threads (tiledsm.match.paths._cell:
-    float64 path costs stored as float32, the predecessor's minimum in
-    float64 along a row, rounded to float32 across rows). The path costs
+    a cell spread over the block's threads (tiledsm.match.paths._cell: path
+    costs, transitions and the predecessor's minimum in float32). The path costs
     are added to ``S``, or written with ``assign`` (the first direction:
     ``0 + x`` is ``x``, so ``S`` needs no zeroing first)."""
     ny, nx, nd = cost.shape
     line = cuda.blockIdx.x
     tid = cuda.threadIdx.x
     nthreads = cuda.blockDim.x
-    red = cuda.shared.array(1024, dtype=np.float64)
+    red = cuda.shared.array(1024, dtype=np.float32)
     # the line's first cell: the one whose predecessor leaves the block
     if di == 0:
         i = line
@@ -327,7 +326,7 @@ def path_kernel(cost, base, nvalid, P1, P2, invalid, di, dj, gi0, gj0, period, r
         i = (0 if di > 0 else ny - 1) + di * (line - nx + 1)
         j = 0 if dj > 0 else nx - 1
     slot = 0
-    prev_min = 0.0
+    prev_min = f32(0.0)
     first_cell = True
     while i >= 0 and i < ny and j >= 0 and j < nx:
         n = nvalid[i, j]
@@ -346,27 +345,27 @@ def path_kernel(cost, base, nvalid, P1, P2, invalid, di, dj, gi0, gj0, period, r
             if nq > nd:
                 nq = nd
             shift = base[i, j] - base[pi, pj]
-        m = math.inf
+        m = inf
         k = tid
         while k < n:
             c = cost[i, j, k]
             if math.isnan(c) or math.isinf(c):
                 c = invalid
             if first:
-                o = f64(c)
+                o = c
             else:
                 l = shift + k
                 below = label_cost(buf, line, slot, l - 1, nq)
                 at = label_cost(buf, line, slot, l, nq)
                 above = label_cost(buf, line, slot, l + 1, nq)
                 side = smaller(below, above) + P1
-                tr = f64(smaller(at, side)) - prev_min
-                o = f64(c) + smaller(tr, f64(P2))
-            buf[line, 1 - slot, k] = f32(o)
+                tr = smaller(at, side) - prev_min
+                o = c + smaller(tr, P2)
+            buf[line, 1 - slot, k] = o
             if assign:
-                S[i, j, k] = f32(o)
+                S[i, j, k] = o
             else:
-                S[i, j, k] += f32(o)
+                S[i, j, k] += o
             if o < m:
                 m = o
             k += nthreads
@@ -381,10 +380,8 @@ def path_kernel(cost, base, nvalid, P1, P2, invalid, di, dj, gi0, gj0, period, r
             s //= 2
         m = red[0]
         if n <= 0:
-            m = f64(inf)
-        if first:
-            m = f64(f32(m))  # a restart's minimum is a float32 cost
-        prev_min = f64(f32(m)) if round_min else m
+            m = inf
+        prev_min = m
         cuda.syncthreads()  # red[0] read by all before the next cell writes it
         slot = 1 - slot
         first_cell = False

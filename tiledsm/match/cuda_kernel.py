@@ -400,11 +400,10 @@ def _aggregated(cost, P1, P2, base, nvalid, invalid_cost, origin, restart_period
     p1, p2, inv = np.float32(P1), np.float32(P2), np.float32(invalid_cost)
     for d, (di, dj) in enumerate(DIRECTIONS):
         lines = ny if di == 0 else nx if dj == 0 else nx + ny - 1
-        # the in-row paths keep their minimum in float64, the others in
-        # float32; the first direction writes S (every candidate of every
-        # cell: its lines cover the block), the others add to it
+        # the first direction writes S (every candidate of every cell: its
+        # lines cover the block), the others add to it
         _run(path_k, (lines, threads), space.stream, d_cost, d_base, d_n, p1, p2, inv, di, dj, gi0, gj0, period,
-             di != 0, d == 0, S, buf)
+             d == 0, S, buf)
     space.give("paths", "vol_in")
     return S, d_cost, d_n
 

@@ -90,13 +90,9 @@ def _fast_buffers(nx, nd):
 def _step_fast(c, prev, o0, prev_min, P1, P2, out, pad, ob, n):
     """:func:`_step` on one cell's (NaN-filled) costs ``c``; ``o0 = pad + shift``.
 
-    The arithmetic types are :func:`_step`'s as compiled there (where the
-    ``P2`` of :func:`_penalty2` is a float64): the transition relative to
-    the neighbour minimum, the path cost before it is stored (float32) and
-    the returned minimum are float64, the neighbour's costs float32. The
-    path costs are computed in one vectorised loop (``ob``: float64
-    scratch), their minimum in a second one with four running minima
-    (exact in any order)."""
+    All in float32, as :func:`_step`: the path costs are computed in one
+    vectorised loop (``ob``: float32 scratch), their minimum in a second
+    one with four running minima (exact in any order)."""
     pv = prev[o0 - 1 : o0 + n + 1]
     ot = out[pad : pad + n]
     for k in range(n):
@@ -108,10 +104,10 @@ def _step_fast(c, prev, o0, prev_min, P1, P2, out, pad, ob, n):
 
 @nb.njit(nogil=True, cache=True, inline="always")
 def _path_cost(c, below, at, above, P1, P2, prev_min):
-    """A candidate's path cost (float64) from its cost ``c`` and the
+    """A candidate's path cost (float32) from its cost ``c`` and the
     neighbour's path costs one label below, at and above its label."""
-    m = np.float64(min(at, min(below, above) + P1)) - prev_min
-    return np.float64(c) + min(m, P2)
+    m = min(at, min(below, above) + P1) - prev_min
+    return c + min(m, P2)
 
 
 @nb.njit(nogil=True, cache=True, inline="always")
@@ -137,7 +133,7 @@ def _step_bounded(c, prev, shift, prev_min, P1, P2, out, pad, ob, n, nd):
 @nb.njit(nogil=True, cache=True, inline="always")
 def _min4(ob, n):
     if n <= 0:
-        return np.float64(_INF)
+        return _INF
     b0 = ob[0]
     b1 = b0
     b2 = b0
@@ -176,10 +172,10 @@ def _init_lanes(c, out, pad, ob, n):
     other lanes; returns their minimum."""
     ot = out[pad : pad + _LANES]
     for k in range(_LANES):
-        o = np.float64(c[k]) if k < n else np.float64(_INF)
+        o = c[k] if k < n else _INF
         ob[k] = o
         ot[k] = o
-    return np.float32(_min_lanes(ob))
+    return _min_lanes(ob)
 
 
 @nb.njit(nogil=True, cache=True, inline="always")
@@ -190,7 +186,7 @@ def _step_lanes(c, prev, o0, prev_min, P1, P2, out, pad, ob, n):
     ot = out[pad : pad + _LANES]
     for k in range(_LANES):
         o = _path_cost(c[k], pv[k], pv[k + 1], pv[k + 2], P1, P2, prev_min)
-        o = o if k < n else np.float64(_INF)
+        o = o if k < n else _INF
         ob[k] = o
         ot[k] = o
     return _min_lanes(ob)
@@ -199,7 +195,7 @@ def _step_lanes(c, prev, o0, prev_min, P1, P2, out, pad, ob, n):
 @nb.njit(nogil=True, cache=True, inline="always")
 def _cell(c, prev, shift, prev_min, P1, P2, out, pad, ob, n, nd, wide, slot, first):
     """Path cost of one cell into slot ``out`` (its minimum returned,
-    float64): a restart (``first``, its own costs) or :func:`_step` from
+    float32): a restart (``first``, its own costs) or :func:`_step` from
     the neighbour's slot ``prev`` whose labels are ``shift`` lower.
 
     ``wide[slot]`` says whether the slot holds more than ``_LANES``
@@ -213,14 +209,14 @@ def _cell(c, prev, shift, prev_min, P1, P2, out, pad, ob, n, nd, wide, slot, fir
         wide[slot] = True
     if first:
         if lanes:
-            return np.float64(_init_lanes(c, out, pad, ob, n))
+            return _init_lanes(c, out, pad, ob, n)
         ot = out[pad : pad + n]
         for k in range(n):
             ot[k] = c[k]
             ob[k] = c[k]
         _absent(out, pad, n, nd)
-        return np.float64(np.float32(_min4(ob, n)))
-    p1, p2, pm = P1, np.float64(P2), np.float64(prev_min)
+        return _min4(ob, n)
+    p1, p2, pm = P1, P2, prev_min
     if -_GUARD <= shift <= _GUARD:
         if lanes:
             return _step_lanes(c, prev, pad + shift, pm, p1, p2, out, pad, ob, n)
@@ -248,13 +244,13 @@ def _fill_row(cost, i, value, nvalid, out):
 def _fast_scratch(nx: int, nd: int) -> tuple:
     """The buffers of :func:`_pass_fast`: path slots of the in-row and the
     row-crossing paths (:func:`_fast_buffers`), a row of filled costs
-    (finite beyond a cell's own: the fixed lanes read them, unused), float64
-    and float32 per-cell scratch, and the slots' wide flags (see
+    (finite beyond a cell's own: the fixed lanes read them, unused), two
+    float32 per-cell scratches, and the slots' wide flags (see
     :func:`_cell`)."""
     pad, width, prev, prev_min, cur, cur_min = _fast_buffers(nx, nd)
     return (
         pad, prev, prev_min, cur, cur_min, np.full((nx, width), _INF, np.float32),
-        np.zeros((nx, max(nd, _LANES)), np.float32), np.empty(max(nd, _LANES)), np.empty(nd, np.float32),
+        np.zeros((nx, max(nd, _LANES)), np.float32), np.empty(max(nd, _LANES), np.float32), np.empty(nd, np.float32),
         np.zeros(nx, np.bool_), np.zeros((3, nx), np.bool_), np.zeros((3, nx), np.bool_),
     )
 
@@ -275,7 +271,7 @@ def _pass_fast(cost, base, nvalid, P1, P2, S, forward, gi0, gj0, period, invalid
         i = t if forward else ny - 1 - t
         pi = i - sgn
         _fill_row(cost, i, invalid, nvalid, crow)
-        rmin = 0.0  # float64, as in _pass
+        rmin = np.float32(0.0)  # float32, as in _pass
         for u in range(nx):
             j = u if forward else nx - 1 - u
             first = u == 0 or restarts(gj0 + j, sgn, period) or nvalid[i, j - sgn] == 0

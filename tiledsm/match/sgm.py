@@ -73,15 +73,16 @@ def _step(cost, i, j, prev, prev_min, shift, P1, P2, out, n):
     cheapest of staying, a one-label change (+``P1``) and any jump
     (+``P2``), taken relative to ``prev_min``: a jump beyond the
     neighbour's candidates then costs exactly ``P2`` however deep the
-    buffer is.
+    buffer is. All in float32 (``P1`` and ``prev_min`` are float32, an
+    adaptive ``P2`` is rounded to float32).
     """
     nd = cost.shape[2]
     pad = nd + 1
     best = _INF
-    p2 = np.float64(P2)
+    p2 = np.float32(P2)
     if shift > nd or shift < -nd:
         for k in range(n):
-            o = np.float64(cost[i, j, k]) + p2
+            o = cost[i, j, k] + p2
             out[pad + k] = o
             if o < best:
                 best = o
@@ -89,10 +90,10 @@ def _step(cost, i, j, prev, prev_min, shift, P1, P2, out, n):
         o0 = pad + shift
         for k in range(n):
             q = o0 + k
-            m = np.float64(min(prev[q], min(prev[q - 1], prev[q + 1]) + P1)) - np.float64(prev_min)
+            m = min(prev[q], min(prev[q - 1], prev[q + 1]) + P1) - prev_min
             if p2 < m:
                 m = p2
-            o = np.float64(cost[i, j, k]) + m
+            o = cost[i, j, k] + m
             out[pad + k] = o
             if o < best:
                 best = o
