@@ -111,15 +111,19 @@ class _Inputs:
         details: dict = {}
         self.lo, self.hi, self.ns = sample_plan(self.base, self.nvalid, self.half, details)
         self.samples = details["n_samples"] * len(self.imgs)
-        self.npairs = len(view_pairs(len(self.imgs), args[16] if len(args) > 16 else kwargs.get("pair_w"))[0])
+        pairs, self.pair_w = view_pairs(len(self.imgs), args[16] if len(args) > 16 else kwargs.get("pair_w"))
+        self.pair_u = np.array([p[0] for p in pairs], np.int64)
+        self.pair_v = np.array([p[1] for p in pairs], np.int64)
         self.candidates = int(self.nvalid.sum())
 
-    def scratch(self):
+    def scratch(self, ring: bool = True):
+        """The sweep's scratch (:func:`~tiledsm.match.sweep._sweep_scratch`),
+        after the ring of sampled rows (``None`` without ``ring``)."""
         from tiledsm.match.sweep import _sweep_scratch
 
         nv, nx = len(self.imgs), self.href.shape[1]
-        ring = np.full((nv, 2 * self.half + 1, nx, self.ns), np.nan, np.float32)
-        return ring, _sweep_scratch(nv, self.npairs, nx, self.ns, max(1, int(self.nvalid.max())), self.half)
+        rows = np.full((nv, 2 * self.half + 1, nx, self.ns), np.nan, np.float32) if ring else None
+        return rows, _sweep_scratch(nv, len(self.pair_u), nx, self.ns, max(1, int(self.nvalid.max())), self.half)
 
     def geometry(self) -> tuple:
         return (self.lat_r, self.lat_c, self.stride, self.k0, self.dh, self.href, self.step, *self.origin,
@@ -138,7 +142,7 @@ def sampling(task: _Inputs) -> None:
 
 
 def tracks(task: _Inputs) -> None:
-    _, s = task.scratch()
+    _, s = task.scratch(ring=False)
     _track_rows(len(task.imgs), *task.geometry(), task.lo, task.hi, s[0], s[1])
 
 
@@ -179,7 +183,9 @@ def capture(views, todo, h_range, params) -> dict:
 def measure(task: _Inputs, match, repeat: int) -> dict:
     """Fastest process CPU time of each part over ``repeat`` turns."""
     ref = volume(task)  # compiled and warm
-    sampling(task), tracks(task), aggregation(task, ref, match)
+    sampling(task)
+    tracks(task)
+    aggregation(task, ref, match)
     times = {p: [] for p in PARTS}
     for _ in range(repeat):
         for part in PARTS:
@@ -203,15 +209,12 @@ def check_split(task: _Inputs) -> bool:
     """Whether the sampling driver's ring plus the kernel's own ZNCC rows
     give the kernel's volume bit for bit (the parts time the task's own
     arithmetic)."""
-    from tiledsm.match.sweep import empty_volume, view_pairs
+    from tiledsm.match.sweep import empty_volume
     from tiledsm.match.zncc_rows import zncc_row
 
     ring, s = task.scratch()
     nv = len(task.imgs)
     vol = empty_volume(task.nvalid, max(1, int(task.nvalid.max())))
-    pairs, pw = view_pairs(nv, task.args[16] if len(task.args) > 16 else task.kwargs.get("pair_w"))
-    pu = np.array([p[0] for p in pairs], np.int64)
-    pv = np.array([p[1] for p in pairs], np.int64)
     eps = float(task.kwargs.get("eps", 1e-6))
     wsz = 2 * task.half + 1
     for r in range(task.href.shape[0]):
@@ -221,7 +224,8 @@ def check_split(task: _Inputs) -> bool:
                         task.hi, ring[v, r % wsz], *s[:9])
         i = r - task.half
         if i >= task.half:
-            zncc_row(ring, i, task.half, task.lo, task.base, task.nvalid, pu, pv, pw, eps, vol, *s[9:])
+            zncc_row(ring, i, task.half, task.lo, task.base, task.nvalid, task.pair_u, task.pair_v, task.pair_w,
+                     eps, vol, *s[9:])
     return bool(np.array_equal(vol.view(np.uint32), volume(task).view(np.uint32)))
 
 

@@ -216,16 +216,15 @@ def _cell(c, prev, shift, prev_min, P1, P2, out, pad, ob, n, nd, wide, slot, fir
             ob[k] = c[k]
         _absent(out, pad, n, nd)
         return _min4(ob, n)
-    p1, p2, pm = P1, P2, prev_min
     if -_GUARD <= shift <= _GUARD:
         if lanes:
-            return _step_lanes(c, prev, pad + shift, pm, p1, p2, out, pad, ob, n)
+            return _step_lanes(c, prev, pad + shift, prev_min, P1, P2, out, pad, ob, n)
         _absent(out, pad, n, nd)
-        return _step_fast(c, prev, pad + shift, pm, p1, p2, out, pad, ob, n)
+        return _step_fast(c, prev, pad + shift, prev_min, P1, P2, out, pad, ob, n)
     # beyond the guard (beyond the neighbour's candidates too: then every
     # read is +inf and only the P2 transition remains, as in _step)
     _absent(out, pad, n, nd)
-    return _step_bounded(c, prev, shift, pm, p1, p2, out, pad, ob, n, nd)
+    return _step_bounded(c, prev, shift, prev_min, P1, P2, out, pad, ob, n, nd)
 
 
 @nb.njit(nogil=True, cache=True)
