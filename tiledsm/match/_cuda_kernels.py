@@ -96,25 +96,25 @@ def bilinear(lat, v, t, i0, j0, w00, w01, w10, w11):
             + mul(w11, lat[v, t, i0 + 1, j0 + 1]))
 
 
-@dev
-def keys_near(d):
-    # ((a + 2) d - (a + 3)) d d + 1
-    return mul(mul(mul(a + 2.0, d) - (a + 3.0), d), d) + 1.0
+# Keys' coefficients in float32 (tiledsm.match.sampling.cubic_weights)
+one32 = f32(1.0)
+a1 = f32(a)
+a2 = f32(a + 2.0)
 
 
 @dev
-def keys_far(d):
-    # ((a d - 5 a) d + 8 a) d - 4 a
-    return mul(mul(mul(a, d) - 5.0 * a, d) + 8.0 * a, d) - 4.0 * a
+def cubic_weights(t):
+    # tiledsm.match.sampling.cubic_weights, float32 t
+    g = one32 - t
+    return (mul32(mul32(a1, t), mul32(g, g)), mul32(g, (one32 + t) - mul32(mul32(a2, t), t)),
+            mul32(t, (one32 + g) - mul32(mul32(a2, g), g)), mul32(mul32(a1, g), mul32(t, t)))
 
 
 @dev
-def row4(img, v, r, ix, w0, w1, w2, w3):
-    row = mul(w0, f64(img[v, r, ix - 1]))
-    row += mul(w1, f64(img[v, r, ix]))
-    row += mul(w2, f64(img[v, r, ix + 1]))
-    row += mul(w3, f64(img[v, r, ix + 2]))
-    return row
+def column4(img, v, iy, c, w0, w1, w2, w3):
+    # tiledsm.match.sampling.column4
+    return ((mul32(w0, img[v, iy - 1, c]) + mul32(w1, img[v, iy, c])) + mul32(w2, img[v, iy + 1, c])
+            + mul32(w3, img[v, iy + 2, c]))
 
 
 @dev
@@ -129,16 +129,17 @@ def sample(img, v, h, w, y, x, cubic):
             return f32(math.nan)
         iy = int(math.floor(y))
         ix = int(math.floor(x))
-        fy = y - iy
-        fx = x - ix
-        wy0, wy1, wy2, wy3 = keys_far(fy + 1.0), keys_near(fy), keys_near(1.0 - fy), keys_far(2.0 - fy)
-        wx0, wx1, wx2, wx3 = keys_far(fx + 1.0), keys_near(fx), keys_near(1.0 - fx), keys_far(2.0 - fx)
-        acc = 0.0
-        acc += mul(wy0, row4(img, v, iy - 1, ix, wx0, wx1, wx2, wx3))
-        acc += mul(wy1, row4(img, v, iy, ix, wx0, wx1, wx2, wx3))
-        acc += mul(wy2, row4(img, v, iy + 1, ix, wx0, wx1, wx2, wx3))
-        acc += mul(wy3, row4(img, v, iy + 2, ix, wx0, wx1, wx2, wx3))
-        return f32(acc)
+        # tiledsm.match.sampling.cubic_weights and cubic_sum, float32
+        fy = f32(y - iy)
+        fx = f32(x - ix)
+        wy0, wy1, wy2, wy3 = cubic_weights(fy)
+        wx0, wx1, wx2, wx3 = cubic_weights(fx)
+        c = ix - 1
+        c0 = column4(img, v, iy, c, wy0, wy1, wy2, wy3)
+        c1 = column4(img, v, iy, c + 1, wy0, wy1, wy2, wy3)
+        c2 = column4(img, v, iy, c + 2, wy0, wy1, wy2, wy3)
+        c3 = column4(img, v, iy, c + 3, wy0, wy1, wy2, wy3)
+        return (mul32(wx0, c0) + mul32(wx2, c2)) + (mul32(wx1, c1) + mul32(wx3, c3))
     if not (y >= 0.0 and x >= 0.0 and y < h - 1.0 and x < w - 1.0):
         return f32(math.nan)
     iy = int(math.floor(y))

@@ -41,6 +41,8 @@ def cost_volume_reference(
     (:func:`~tiledsm.match.sampling.sample_view`), scored by
     :func:`~tiledsm.match.cost.mean_zncc_cost` and scattered into the
     cells' candidates."""
+    # float32 windows, as the fast kernel's (bicubic samples are float32 sums)
+    imgs = [np.ascontiguousarray(im, np.float32) for im in imgs]
     nv = len(imgs)
     ny, nx = href.shape
     nd = max(1, int(nvalid.max()))
