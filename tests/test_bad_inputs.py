@@ -573,8 +573,16 @@ def test_read_only_installation_runs_for_a_user_without_a_writable_home(k, tmp_p
                            cwd=tmp_path, env=env)
         assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr[-3000:]
     assert "gsd_m" in r.stdout, r.stdout
-    assert [p.name for p in temp.glob("tiledsm-numba-cache-*/*/rpc._rational-*.nbi")], list(temp.rglob("*"))
+    index = list(temp.glob("tiledsm-numba-cache-*/*/rpc._rational-*.nbi"))
+    assert index, list(temp.rglob("*"))
     assert not list(installed.rglob("__pycache__"))
+    # the next start loads the kernel: the stale-kernel check keeps its state
+    # there too, and removes nothing (tiledsm.kernel_cache)
+    assert list(temp.glob("tiledsm-numba-cache-*/tiledsm-kernel-state/*.json"))
+    stamp = index[0].stat().st_mtime_ns
+    r = subprocess.run([sys.executable, "-m", "tiledsm", "info", str(k["v0"])], capture_output=True, text=True,
+                       timeout=300, cwd=tmp_path, env=env)
+    assert r.returncode == 0 and index[0].stat().st_mtime_ns == stamp, r.stderr[-3000:]
 
 
 def test_a_run_killed_during_the_export_leaves_no_temporary_after_its_rerun(k, tmp_path):

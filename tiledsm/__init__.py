@@ -17,6 +17,12 @@ from tiledsm.writable import direct_numba_cache  # noqa: E402
 
 direct_numba_cache(os.path.dirname(__file__))
 
+# numba checks a cached kernel against its own file only: remove the kernels
+# whose imported modules changed (an upgrade, an edit), before any is loaded.
+from tiledsm.kernel_cache import purge_stale_kernels  # noqa: E402
+
+purge_stale_kernels(os.path.dirname(__file__))
+
 from tiledsm.errors import TiledsmError  # noqa: E402
 
 __version__ = "0.1.0"
