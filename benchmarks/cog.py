@@ -5,13 +5,16 @@
 A synthetic DSM (smooth relief plus 0.1 m noise and 5 % holes, float32) of
 each size, held in a zarr store as a DSM run leaves it, is exported by
 :func:`tiledsm.io.write_cog` (DEFLATE, floating-point predictor, 512 px
-tiles, overviews) three ways, in alternation, ``--repeat`` times each:
-``threads=1`` and ``threads="ALL_CPUS"`` (overviews averaged while the grid
-streams, the default), and ``threads="ALL_CPUS"`` with
-``overviews="gdal"`` (GDAL's ``COG`` driver reads the grid again to
-average them). The table gives the best wall time of each, checks that the
-two thread counts wrote byte-identical files and that both overview
-routes wrote the same values at every level. Writes
+tiles, overviews) at the DEFLATE level ``dsm.tif`` is written at
+(:data:`tiledsm.workflows.common.DSM_DEFLATE_LEVEL`) three ways, in
+alternation, ``--repeat`` times each: ``threads=1`` and
+``threads="ALL_CPUS"`` (overviews averaged while the grid streams, the
+default), and ``threads="ALL_CPUS"`` with ``overviews="gdal"`` (GDAL's
+``COG`` driver reads the grid again to average them); a fourth way is all
+cores at GDAL's default level (6), for the level's time and bytes. The
+table gives the best wall time of each, checks that the two thread counts
+wrote byte-identical files and that both overview routes wrote the same
+values at every level. Writes
 ``benchmarks/results/cog.json``.
 """
 
@@ -83,6 +86,7 @@ def main(argv=None) -> int:
     import dask
 
     from tiledsm.io import open_product, write_cog, write_zarr
+    from tiledsm.workflows.common import DSM_DEFLATE_LEVEL
 
     rows = []
     with tempfile.TemporaryDirectory(prefix="tiledsm_bench_cog_") as tmp:
@@ -90,8 +94,10 @@ def main(argv=None) -> int:
             with dask.config.set(scheduler="threads"):
                 store = write_zarr(synthetic_dsm(n), Path(tmp) / f"dsm_{n}.zarr")
             stored = open_product(store)
-            ways = {"1": dict(threads=1), "ALL_CPUS": dict(threads="ALL_CPUS"),
-                    "gdal_overviews": dict(threads="ALL_CPUS", overviews="gdal")}
+            lvl = DSM_DEFLATE_LEVEL
+            ways = {"1": dict(threads=1, level=lvl), "ALL_CPUS": dict(threads="ALL_CPUS", level=lvl),
+                    "gdal_overviews": dict(threads="ALL_CPUS", overviews="gdal", level=lvl),
+                    "default_level": dict(threads="ALL_CPUS")}
             times: dict[str, list[float]] = {way: [] for way in ways}
             for _ in range(args.repeat):
                 for way, kw in ways.items():
@@ -102,18 +108,22 @@ def main(argv=None) -> int:
             same_values = levels_equal(Path(tmp) / f"dsm_{n}_ALL_CPUS.tif", Path(tmp) / f"dsm_{n}_gdal_overviews.tif")
             row = {"size": n, "one_thread_s": min(times["1"]), "all_cpus_s": min(times["ALL_CPUS"]),
                    "gdal_overviews_s": min(times["gdal_overviews"]), "times_s": times, "identical_bytes": same,
-                   "same_overview_values": same_values,
-                   "mib": round((Path(tmp) / f"dsm_{n}_1.tif").stat().st_size / 2**20, 1)}
+                   "same_overview_values": same_values, "deflate_level": lvl,
+                   "default_level_s": min(times["default_level"]),
+                   "mib": round((Path(tmp) / f"dsm_{n}_1.tif").stat().st_size / 2**20, 1),
+                   "default_level_mib": round((Path(tmp) / f"dsm_{n}_default_level.tif").stat().st_size / 2**20, 1)}
             row["speed_up"] = row["one_thread_s"] / row["all_cpus_s"]
             rows.append(row)
             print(f"{n}²: 1 thread {row['one_thread_s']:.2f} s, all cores {row['all_cpus_s']:.2f} s "
                   f"(x{row['speed_up']:.2f}), identical bytes: {same}; GDAL's overviews {row['gdal_overviews_s']:.2f} s, "
                   f"same values: {same_values}", file=sys.stderr)
     table = ["| grid | COG (MiB) | 1 thread (s) | all cores (s) | speed-up | identical bytes | all cores, GDAL's "
-             "overviews (s) | same values |", "|---|---|---|---|---|---|---|---|"]
+             "overviews (s) | same values | all cores, GDAL's default level (s) | its COG (MiB) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     table += [f"| {r['size']}² | {r['mib']} | {r['one_thread_s']:.2f} | {r['all_cpus_s']:.2f} | {r['speed_up']:.2f} | "
               f"{'yes' if r['identical_bytes'] else 'NO'} | {r['gdal_overviews_s']:.2f} | "
-              f"{'yes' if r['same_overview_values'] else 'NO'} |" for r in rows]
+              f"{'yes' if r['same_overview_values'] else 'NO'} | {r['default_level_s']:.2f} | "
+              f"{r['default_level_mib']} |" for r in rows]
     print("\n".join(table))
     doc = {"benchmark": "cog", "when": _dt.datetime.now().isoformat(timespec="seconds"),
            "command": " ".join([Path(sys.executable).name, *sys.argv]), "cpus": os.cpu_count(),

@@ -292,8 +292,8 @@ def write_cog(
     threads : str or int
         GDAL's ``NUM_THREADS`` for compressing the tiles (``"ALL_CPUS"``
         or a count): tiles are compressed independently, so the file is
-        byte-identical to a single-threaded one (tested); 1.7x faster on
-        2 cores at 8192² (``benchmarks/cog.py``, ``cog.json``).
+        byte-identical to a single-threaded one (tested); 1.4x faster on
+        2 cores at 8192², DEFLATE level 1 (``benchmarks/cog.py``, ``cog.json``).
     level : int, optional
         Compression level (DEFLATE 1-12, ZSTD 1-22; GDAL's default when None).
     overviews : {"stream", "gdal"}

@@ -18,7 +18,7 @@ from tiledsm.cluster import ClusterConfig, compute_context, compute_with_progres
 log = logging.getLogger("tiledsm")
 
 __all__ = [
-    "DESCRIPTIONS", "DSM_EXPORTS", "setup_log", "withdraw_products", "dsm_metrics", "reference_on_grid",
+    "DESCRIPTIONS", "DSM_EXPORTS", "DSM_DEFLATE_LEVEL", "setup_log", "withdraw_products", "dsm_metrics", "reference_on_grid",
     "write_dsm_products", "grid_chunk", "completeness", "write_json",
 ]
 
@@ -36,6 +36,13 @@ def setup_log(out: Path) -> logging.Handler:
 DESCRIPTIONS = ("metrics.json", "recipe.resolved.yaml")
 #: exports of the DSM store, rewritten from it at the end of a run
 DSM_EXPORTS = ("dsm.tif", "dsm.png", "dsm_error.png")
+
+#: DEFLATE level of ``dsm.tif`` (float heights, floating-point predictor).
+#: Measured on the 4096² scene's DSM (``write_cog`` from its store, 2 cores,
+#: three runs each): level 1 in 0.95-1.07 s into 42.8 MiB, GDAL's default (6)
+#: in 1.61-1.63 s into 41.9 MiB. The export is on the command's critical
+#: path; 2 % more bytes are not. ``dh.tif`` uses level 1 for the same reason.
+DSM_DEFLATE_LEVEL = 1
 
 
 def withdraw_products(out: Path, recipe, plan, overwrite: bool) -> list[str]:
@@ -173,7 +180,7 @@ def write_dsm_products(
     stored = open_product(out / "dsm.zarr")
     exports = {}
     if cog:
-        exports["cog"] = lambda: write_cog(stored["height"], out / "dsm.tif")
+        exports["cog"] = lambda: write_cog(stored["height"], out / "dsm.tif", level=DSM_DEFLATE_LEVEL)
     if quicklook:
         exports["quicklook"] = lambda: make_quicklook(stored["height"], out / "dsm.png", kind="height",
                                                       title="DSM (m, ellipsoidal)")

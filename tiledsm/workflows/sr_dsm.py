@@ -380,7 +380,7 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
     from tiledsm.io import write_cog
     from tiledsm.plan.core import Limits
     from tiledsm.synth.degrade import degrade
-    from tiledsm.workflows.common import write_json
+    from tiledsm.workflows.common import DSM_DEFLATE_LEVEL, write_json
     from tiledsm.workflows.sr_scores import image_quality_lazy
 
     out = Path(out)
@@ -431,7 +431,7 @@ def run_sr_dsm(recipe: SRDSMRecipe, out: Path, cluster: ClusterConfig | None = N
             if name == UPSCALE:
                 lr_height, report, _ = make_dsm(lr_views, lr_grid(grid, s), out / "lr")
                 with compute_context(run_cluster):
-                    write_cog(upsample_dsm(lr_height, grid), folder / "dsm.tif")
+                    write_cog(upsample_dsm(lr_height, grid), folder / "dsm.tif", level=DSM_DEFLATE_LEVEL)
                 row: dict = {"dsm": {**report, "lr_grid_resolution": grid.resolution * s}}
             else:
                 sr_views = [_super_resolve_file(lv, folder / f"sr_view_{i}.tif", name, sr, run_cluster)
