@@ -16,7 +16,10 @@ reference, scored apart from the timed command as ``benchmarks/dsm.py``
 scores it). One uncounted run of each side comes first (``--warmup``:
 an exported package compiles its kernels on its first run). Both sides run as ``python -m tiledsm`` from the run folder
 (the console script of this tree would not start an older package).
-Writes ``benchmarks/results/dsm_paired.json``.
+Writes ``benchmarks/results/dsm_paired.json``: each row names its
+baseline; ``--append`` keeps the file's rows of other cases or other
+baselines (:func:`merge_rows`), so a change measured against its parent
+does not erase rows that other pages read.
 """
 
 from __future__ import annotations
@@ -53,6 +56,22 @@ def run_once(dsm_args: list[str], reference: str, out: Path, src: Path, workers:
             "nmad_m": ref.get("nmad"), "completeness": ref.get("completeness")}
 
 
+def merge_rows(earlier: dict, rows: list[dict]) -> tuple[list[dict], str | None]:
+    """The rows of an earlier results file ``earlier`` whose (case,
+    baseline commit) was not run now, each with its ``when`` (and its
+    baseline: files from before rows named theirs carry it at the top),
+    followed by ``rows``; and the earlier command when a row was kept."""
+    top = earlier.get("baseline")
+    run_now = {(r["case"], r["baseline"]["commit"]) for r in rows}
+    kept = []
+    for r in earlier.get("rows", []):
+        r = {"when": r.get("when", earlier.get("when")), **r}
+        r.setdefault("baseline", top)
+        if (r["case"], (r["baseline"] or {}).get("commit")) not in run_now:
+            kept.append(r)
+    return kept + rows, (earlier.get("command") if kept else None)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--against", required=True, help="git commit (or any rev) whose package is the baseline B")
@@ -64,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timeout", type=float, default=3600)
     ap.add_argument("--json", default=str(REPO / "benchmarks" / "results" / "dsm_paired.json"))
     ap.add_argument("--append", action="store_true",
-                    help="keep the results file's rows of the cases not run now (same baseline only)")
+                    help="keep the results file's rows of the cases or baselines not run now")
     args = ap.parse_args(argv)
     run_dir = Path(args.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -86,7 +105,8 @@ def main(argv: list[str] | None = None) -> int:
         same = all(a["nmad_m"] == runs["B"][0]["nmad_m"] and a["completeness"] == runs["B"][0]["completeness"]
                    for a in runs["A"] + runs["B"])
         rows.append({
-            "case": case, **info, "workers": args.workers, "pairs": args.pairs,
+            "case": case, **info, "baseline": {"rev": args.against, "commit": commit}, "workers": args.workers,
+            "pairs": args.pairs,
             "a_wall_s_median": statistics.median(r["wall_s"] for r in runs["A"]),
             "b_wall_s_median": statistics.median(r["wall_s"] for r in runs["B"]),
             "a_cpu_s_median": statistics.median(r["cpu_s"] for r in runs["A"]),
@@ -100,18 +120,14 @@ def main(argv: list[str] | None = None) -> int:
         })
     command = " ".join([Path(sys.executable).name, *sys.argv])
     if args.append and Path(args.json).exists():
-        earlier = json.loads(Path(args.json).read_text())
-        if earlier.get("baseline", {}).get("commit") != commit:
-            raise SystemExit(f"--append: {args.json} was measured against {earlier.get('baseline')}, not {commit}")
-        run_now = {r["case"] for r in rows}
-        kept = [{"when": earlier["when"], **r} for r in earlier["rows"] if r["case"] not in run_now]
-        if kept:
-            rows = kept + rows
-            command = f"{earlier['command']}; then {command}"
-    table = ["| case | pairs | this tree: wall (s), CPU (s) (system), largest process (MiB) | baseline: wall (s), "
-             "CPU (s) (system), largest process (MiB) | wall ratio A/B, median (range) | same NMAD and completeness |",
-             "|---|---|---|---|---|---|"]
-    table += [f"| {r['case']} | {r['pairs']} | {r['a_wall_s_median']:.1f}, {r['a_cpu_s_median']:.1f} "
+        rows, earlier_command = merge_rows(json.loads(Path(args.json).read_text()), rows)
+        if earlier_command:
+            command = f"{earlier_command}; then {command}"
+    table = ["| case | baseline | pairs | this tree: wall (s), CPU (s) (system), largest process (MiB) | baseline: "
+             "wall (s), CPU (s) (system), largest process (MiB) | wall ratio A/B, median (range) | same NMAD and "
+             "completeness |", "|---|---|---|---|---|---|---|"]
+    table += [f"| {r['case']} | {(r['baseline'] or {}).get('commit', '?')[:7]} | {r['pairs']} | "
+              f"{r['a_wall_s_median']:.1f}, {r['a_cpu_s_median']:.1f} "
               f"({r['a_sys_s_median']:.1f}), {r['a_largest_process_mib_median']:.0f} | {r['b_wall_s_median']:.1f}, "
               f"{r['b_cpu_s_median']:.1f} ({r['b_sys_s_median']:.1f}), "
               f"{r['b_largest_process_mib_median']:.0f} | {r['ratio_wall_median']:.3f} "
