@@ -85,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--append", action="store_true",
                     help="keep the results file's rows of the cases or baselines not run now")
     args = ap.parse_args(argv)
-    run_dir = Path(args.run_dir)
+    run_dir = Path(args.run_dir).absolute()  # the commands run from its parent
     run_dir.mkdir(parents=True, exist_ok=True)
     base_src, commit = export_rev(args.against, run_dir)
     rows = []
@@ -119,6 +119,7 @@ def main(argv: list[str] | None = None) -> int:
             "same_scores": same, "runs": runs,
         })
     command = " ".join([Path(sys.executable).name, *sys.argv])
+    measured = list(rows)
     if args.append and Path(args.json).exists():
         rows, earlier_command = merge_rows(json.loads(Path(args.json).read_text()), rows)
         if earlier_command:
@@ -135,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     print("\n".join(table))
     write_result(Path(args.json), "dsm_paired", command, rows,
                  baseline={"rev": args.against, "commit": commit}, table="\n".join(table))
-    return 0 if all(r["same_scores"] for r in rows) else 1
+    return 0 if all(r["same_scores"] for r in measured) else 1
 
 
 if __name__ == "__main__":
