@@ -13,7 +13,7 @@ again.
 
 Cost: one ``stat`` per source file on every start (the state file keeps the
 sources' sizes and modification times); the sources are read, hashed and
-parsed only when one of those changed.
+scanned for their imports only when one of those changed.
 """
 
 from __future__ import annotations
@@ -65,8 +65,8 @@ def _imports(source: bytes, name: str, is_package: bool) -> set[str]:
     """Every module ``name``'s source imports (absolute names), with the
     candidates a ``from X import Y`` names (``X`` and ``X.Y``). Read by
     pattern, not parsed: parsing the modules reached from the kernels
-    took 0.4 s, reading their patterns 0.09 s (an import in a string counts too: at
-    worst a kernel is compiled again once more often)."""
+    took 0.4 s, reading their patterns 0.09 s (an import in a string
+    counts too: at worst a kernel is compiled again once more often)."""
     found: set[str] = set()
     for m in _IMPORT.finditer(source):
         for part in m.group(1).split(b"#")[0].split(b","):
