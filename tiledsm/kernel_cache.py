@@ -70,7 +70,9 @@ def _imports(source: bytes, name: str, is_package: bool) -> set[str]:
     found: set[str] = set()
     for m in _IMPORT.finditer(source):
         for part in m.group(1).split(b"#")[0].split(b","):
-            found.add(part.split()[0].decode() if part.split() else "")
+            words = part.split()
+            if words:
+                found.add(words[0].decode())
     for m in _FROM.finditer(source):
         mod = m.group(1).decode()
         level = len(mod) - len(mod.lstrip("."))
@@ -139,18 +141,18 @@ def _cache_folders(source: Path, environ: Mapping[str, str]) -> list[Path]:
     as numba names it: the folder's name and the SHA-1 of its path)."""
     import hashlib
 
+    from tiledsm.writable import numba_user_cache
+
     folder = source.parent
     sub = f"{folder.name}_{hashlib.sha1(str(folder).encode()).hexdigest()}"
     out = [folder / "__pycache__"]
-    for base in (environ.get("NUMBA_CACHE_DIR"), environ.get("XDG_CACHE_HOME") and str(Path(environ["XDG_CACHE_HOME"]) / "numba"),
-                 environ.get("HOME") and str(Path(environ["HOME"]) / ".cache" / "numba")):
+    for base in (environ.get("NUMBA_CACHE_DIR"), numba_user_cache(environ)):
         if base:
             out.append(Path(base) / sub)
     return out
 
 
-def _remove_kernels(source: Path, environ: Mapping[str, str]) -> int:
-    removed = 0
+def _remove_kernels(source: Path, environ: Mapping[str, str]) -> None:
     prefix = source.stem + "."
     for folder in _cache_folders(source, environ):
         if not folder.is_dir():
@@ -159,10 +161,8 @@ def _remove_kernels(source: Path, environ: Mapping[str, str]) -> int:
             if f.name.startswith(prefix) and f.suffix in (".nbi", ".nbc"):
                 try:
                     f.unlink()
-                    removed += 1
                 except OSError:
                     pass  # another process removed it, or a read-only cache: numba checks its own stamp
-    return removed
 
 
 def _write_state(path: Path, state: dict) -> None:
@@ -179,14 +179,12 @@ def _state_path(package: Path, environ: Mapping[str, str]) -> Path | None:
     """The state file: in the package's ``__pycache__``, else (a read-only
     installation) in numba's cache folder for this user, one per
     installation; ``None`` where neither can be written."""
-    from tiledsm.writable import unwritable
+    from tiledsm.writable import numba_user_cache, unwritable
 
     own = package / "__pycache__"
     if unwritable(own) is None:
         return own / STATE_NAME
-    base = environ.get("NUMBA_CACHE_DIR")
-    if not base and (environ.get("XDG_CACHE_HOME") or environ.get("HOME")):
-        base = str(Path(environ.get("XDG_CACHE_HOME") or Path(environ["HOME"]) / ".cache") / "numba")
+    base = environ.get("NUMBA_CACHE_DIR") or numba_user_cache(environ)
     if base and unwritable(base) is None:
         tag = "".join(c if c.isalnum() else "_" for c in str(package))[-100:]
         return Path(base) / "tiledsm-kernel-state" / f"{tag}.json"

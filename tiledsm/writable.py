@@ -7,9 +7,9 @@ from __future__ import annotations
 import os
 import tempfile
 from pathlib import Path
-from typing import MutableMapping
+from typing import Mapping, MutableMapping
 
-__all__ = ["unwritable", "direct_numba_cache"]
+__all__ = ["unwritable", "direct_numba_cache", "numba_user_cache"]
 
 
 def unwritable(folder: str | os.PathLike) -> tuple[Path, str] | None:
@@ -28,7 +28,7 @@ def unwritable(folder: str | os.PathLike) -> tuple[Path, str] | None:
     return None
 
 
-def _user_cache(environ: MutableMapping[str, str]) -> Path | None:
+def numba_user_cache(environ: Mapping[str, str]) -> Path | None:
     """numba's user-wide cache folder (``$XDG_CACHE_HOME/numba``, else
     ``~/.cache/numba``), as :mod:`numba.misc.appdirs` finds it on Linux."""
     base = environ.get("XDG_CACHE_HOME")
@@ -52,7 +52,7 @@ def direct_numba_cache(package: str | os.PathLike, environ: MutableMapping[str, 
     """
     if environ.get("NUMBA_CACHE_DIR"):
         return None
-    user = _user_cache(environ)
+    user = numba_user_cache(environ)
     if unwritable(Path(package) / "__pycache__") is None or (user is not None and unwritable(user) is None):
         return None
     uid = os.getuid() if hasattr(os, "getuid") else "user"
