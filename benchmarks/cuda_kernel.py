@@ -55,7 +55,7 @@ VOLUME_ARGS = ("lat_r", "lat_c", "stride", "k0", "dh", "href", "step", "origin",
                "cubic", "base", "nvalid", "half", "pair_w")
 
 
-def capture(work: Path, size: int, chunk: int) -> list[Path]:
+def capture(work: Path, size: int, chunk: int, levels: int | None = None) -> list[Path]:
     """Run the profiled tasks with a kernel that saves its arguments."""
     sys.path.insert(0, str(REPO))
     import profile_match
@@ -79,8 +79,8 @@ def capture(work: Path, size: int, chunk: int) -> list[Path]:
 
     if "capture" not in KERNELS:
         register_kernel("capture", MatchKernel(volume, None, best=best))
-    views, grid, h_range, levels, params = profile_match.setup(work, size, chunk, None)
-    coarse1 = profile_match.coarse_level(views, grid, h_range, levels, params) if levels > 1 else None
+    views, grid, h_range, levels, params = profile_match.setup(work, size, chunk, levels)
+    coarse1 = profile_match.coarse_level(views, grid, h_range, levels, params, work) if levels > 1 else None
     params = params.model_copy(update={"match": params.match.model_validate(params.match.model_dump() | {"kernel": "capture"})})
     out = []
     work.mkdir(parents=True, exist_ok=True)
@@ -197,18 +197,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--kernels", nargs="+", default=["fast", "cuda"])
     ap.add_argument("--size", type=int, default=1024, help="scene side, pixels (--capture)")
     ap.add_argument("--chunk", type=int, default=512)
+    ap.add_argument("--levels", type=int, help="pyramid levels (--capture; default: as tiledsm dsm picks them)")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--threads", type=int, default=1, help="also run each call by this many threads at once")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     if args.capture:
-        for p in capture(args.capture, args.size, args.chunk):
+        for p in capture(args.capture, args.size, args.chunk, args.levels):
             print(p)
         return 0
     import numba
 
+    if args.tasks is None:
+        ap.error("give --capture DIR or --tasks DIR")
+    calls = sorted(args.tasks.glob("*.npz"))
+    if not calls:
+        print(f"cuda_kernel.py: --tasks {args.tasks}: no captured calls (*.npz) there; run --capture first",
+              file=sys.stderr)
+        return 2
     rows = []
-    for path in sorted(args.tasks.glob("*.npz")):
+    for path in calls:
         task, vargs, wargs, _ = _load(path)
         ny, nx = vargs[6].shape  # href
         res = {}
