@@ -137,11 +137,11 @@ def pretend_gpu(monkeypatch):
     return gpu
 
 
-def _gpu_plan(scene, out, workers: int = 2, **grid):
+def _gpu_plan(scene, out, workers: int = 2, device: str = "cuda", **grid):
     recipe = DSMRecipe.model_validate({
         "pipeline": "dsm", "input": {"images": [str(v) for v in scene.views]},
         "grid": {"like": str(scene.truth_dsm), **grid},
-        "match": {**FAST, "params": {"kernel": "cuda", "device": "cuda"}}})
+        "match": {**FAST, "params": {"kernel": "cuda", "device": device}}})
     return plan_recipe(recipe, out, ClusterConfig(scheduler="threads", workers=workers))
 
 
@@ -163,6 +163,10 @@ def test_default_chunk_shrinks_to_fit_a_gpu(scene, tmp_path, pretend_gpu):
     with pytest.raises(InvalidOptionError, match=r"grid.chunk 512: a task would need on the GPU ~.* beyond its "
                                                  r"share of the free memory of GPU cuda \(2 tasks at once\)"):
         _gpu_plan(scene, tmp_path / "given", chunk=512)
+    # two GPUs share four threads: still 2 tasks on each, the same fit
+    two = _gpu_plan(scene, tmp_path / "two", workers=4, device="cuda:0,1")
+    assert two.recipe.grid.chunk == 128
+    assert any("free memory of GPU cuda:0,1 (2 tasks at once)" in n for n in two.notes)
     # a GPU too small for any chunk tried: refused, naming what to change
     pretend_gpu["free"] = 2**20
     with pytest.raises(InvalidOptionError, match=r"grid.chunk: even the smallest chunk tried .* GPU cuda .*--workers"):

@@ -97,7 +97,7 @@ def test_cuda_kernel_in_the_simulator_gives_the_cpu_kernels_results_bit_for_bit(
 
 
 def test_cuda_kernel_names_a_device_it_cannot_use():
-    with pytest.raises(ValueError, match="'gpu7'.*cuda or cuda:N"):
+    with pytest.raises(ValueError, match="'gpu7'.*cuda, cuda:N"):
         SGVLLParams(kernel="cuda", device="gpu7")
     from numba import cuda
 
@@ -118,10 +118,92 @@ def test_dsm_plans_a_cuda_run_in_the_simulator(tmp_path):
     made = subprocess.run([*cli, "synth", str(scene), "--size", "128", "--seed", "0"], env=env, capture_output=True,
                           text=True, timeout=300)
     assert made.returncode == 0, made.stderr[-3000:]
-    run = subprocess.run([*cli, "dsm", str(scene / "view_0.tif"), str(scene / "view_1.tif"), "--like",
-                          str(scene / "truth_dsm.tif"), "--out", str(tmp_path / "out"), "--device", "cuda",
-                          "--workers", "2", "--scheduler", "threads", "--dry-run"],
-                         env=env, capture_output=True, text=True, timeout=300)
-    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-3000:]
-    assert "Traceback" not in run.stderr and "per worker" in run.stdout
+
+    def dry_run(device):
+        return subprocess.run([*cli, "dsm", str(scene / "view_0.tif"), str(scene / "view_1.tif"), "--like",
+                               str(scene / "truth_dsm.tif"), "--out", str(tmp_path / "out"), "--device", device,
+                               "--workers", "2", "--scheduler", "threads", "--dry-run"],
+                              env=env, capture_output=True, text=True, timeout=300)
+
+    # every GPU numba sees (the simulator's one) is as good as naming it
+    for device in ("cuda", "cuda:all"):
+        run = dry_run(device)
+        assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-3000:]
+        assert "Traceback" not in run.stderr and "per worker" in run.stdout
     assert not (tmp_path / "out").exists()  # a dry run writes nothing
+    # two GPUs named where there is one: a line naming the option
+    run = dry_run("cuda:0,1")
+    assert run.returncode == 2 and "Traceback" not in run.stderr
+    assert "--device" in run.stderr and "'cuda:0,1': only 1 CUDA device(s) here" in run.stderr, run.stderr[-2000:]
+
+
+class _FakeCuda:
+    """numba.cuda as far as the device names need it: ``gpus`` GPUs."""
+
+    def __init__(self, gpus: int):
+        self.gpus = list(range(gpus))
+
+    def is_available(self) -> bool:
+        return bool(self.gpus)
+
+
+def test_device_names_one_or_several_gpus(monkeypatch):
+    from tiledsm.match import cuda_kernel as ck
+
+    monkeypatch.setattr(ck, "_cuda", lambda: _FakeCuda(4))
+    assert ck.device_indices("cuda") == (0,)
+    assert ck.device_indices("cuda:2") == (2,)
+    assert ck.device_indices("cuda:3,1") == (3, 1)
+    assert ck.device_indices("cuda:all") == (0, 1, 2, 3)
+    ck.check_device("cuda:0,3")
+    with pytest.raises(ValueError, match=r"'cuda:1,4'.*only 4 CUDA device\(s\) here"):
+        ck.check_device("cuda:1,4")
+    with pytest.raises(ValueError, match="'cuda:1,1'.*named twice"):
+        ck.check_device("cuda:1,1")
+    for bad in ("cuda:", "cuda:1,", "cuda:x", "gpu:0"):
+        with pytest.raises(ValueError, match="cuda, cuda:N, cuda:N,M"):
+            ck.device_indices(bad)
+    monkeypatch.setattr(ck, "_cuda", lambda: _FakeCuda(0))
+    with pytest.raises(ValueError, match="'cuda:all'.*numba sees no CUDA GPU"):
+        ck.device_indices("cuda:all")
+
+
+def test_threads_take_the_gpus_in_turn_and_keep_theirs(monkeypatch):
+    """Eight threads on four GPUs: two on each, every thread always on
+    the same one (its volume stays where it was made); a process whose
+    dask worker is named 1 starts its round one GPU further."""
+    import threading
+
+    from tiledsm.match import cuda_kernel as ck
+
+    monkeypatch.setattr(ck, "_cuda", lambda: _FakeCuda(4))
+
+    def held_by_threads(offset: int) -> list[int]:
+        monkeypatch.setattr(ck, "_worker_offset", lambda: offset)
+        monkeypatch.setattr(ck, "_NEXT_THREAD", __import__("itertools").count())
+        got, start = [], threading.Barrier(8)
+
+        def work():
+            start.wait()
+            first = ck.thread_device("cuda:all")
+            assert all(ck.thread_device("cuda:all") == first for _ in range(5))
+            assert ck.thread_device("cuda:2") == 2  # one GPU named: that one
+            got.append(first)
+
+        threads = [threading.Thread(target=work) for _ in range(8)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        return got
+
+    assert sorted(held_by_threads(0)) == [0, 0, 1, 1, 2, 2, 3, 3]
+    assert sorted(held_by_threads(1)) == [0, 0, 1, 1, 2, 2, 3, 3]
+    # the process's first thread: its worker's number decides where it starts
+    monkeypatch.setattr(ck, "_NEXT_THREAD", __import__("itertools").count())
+    monkeypatch.setattr(ck, "_worker_offset", lambda: 1)
+    first: list[int] = []
+    t = threading.Thread(target=lambda: first.append(ck.thread_device("cuda:0,1,2,3")))
+    t.start()
+    t.join()
+    assert first == [1]

@@ -30,7 +30,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--reference", default=None, help="reference DSM for metrics (same vertical datum as the output)")
     p.add_argument("--device", default="cpu",
                    help="where matching runs: cpu (the compiled kernel, default) or a CUDA GPU, cuda or cuda:N "
-                        "(the same matching as compiled CUDA kernels on that GPU, the same heights)")
+                        "(the same matching as compiled CUDA kernels on that GPU, the same heights); several: "
+                        "cuda:0,1 or cuda:all (each worker thread keeps one GPU, in turn)")
     p.add_argument("--geoid", default=None, help="geoid grid (e.g. egm96_15.gtx): write heights above the geoid instead of the WGS84 ellipsoid")
     add_cluster_arguments(p, default_scheduler="threads")
     add_overwrite_argument(p)

@@ -350,8 +350,11 @@ class _GPUBudget(_WorkerBudget):
         tasks = tasks_per_device(cluster) if str(device).startswith("cuda") else None
         if tasks is None:
             return cls(None)
-        from tiledsm.match.cuda_kernel import memory_info
+        from tiledsm.match.cuda_kernel import device_indices, memory_info
 
+        # several GPUs: the threads take them in turn, so each has its share
+        gpus = len(device_indices(device))
+        tasks = -(-tasks // gpus)
         info = memory_info(device)
         if info is None:
             return cls(None)

@@ -37,10 +37,17 @@ millimetre; ``benchmarks/cuda_kernel.py`` measures the agreement).
 The module imports ``numba.cuda`` only when a kernel is first used, so
 CPU runs never initialise CUDA. Selected by ``SGVLLParams(kernel="cuda",
 device="cuda")``.
+
+**Several GPUs.** A device naming several (``cuda:0,1``, ``cuda:all``)
+hands each matching thread one of them for its life, in turn
+(:func:`thread_device`): the threads of one process, or of a cluster's
+worker processes, feed every GPU with the same graph.
 """
 
 from __future__ import annotations
 
+import itertools
+import re
 import threading
 from dataclasses import dataclass, field
 
@@ -48,7 +55,8 @@ import numpy as np
 
 from tiledsm.match.sweep import sample_plan, view_pairs
 
-__all__ = ["DeviceVolume", "aggregate", "best", "check_device", "cost_volume", "memory_info"]
+__all__ = ["DeviceVolume", "aggregate", "best", "check_device", "cost_volume", "device_indices", "memory_info",
+           "thread_device"]
 
 def _simulated() -> bool:
     from numba import config
@@ -77,38 +85,109 @@ def _cuda():
 
 def check_device(device: str) -> None:
     """Raise :class:`ValueError` naming ``device`` when this kernel cannot
-    run there (not ``cuda`` or ``cuda:N``, no CUDA GPU visible to numba, no
-    such index)."""
-    index = _device_index(device)
+    run there (not ``cuda``, ``cuda:N``, ``cuda:N,M,...`` or ``cuda:all``;
+    no CUDA GPU visible to numba; no such index)."""
+    _parse_device(device)
     cuda = _cuda()
     if not cuda.is_available():
         raise ValueError(f"device {device!r}: numba sees no CUDA GPU here (the 'cuda' kernel needs one)")
-    if index >= len(cuda.gpus):
-        raise ValueError(f"device {device!r}: only {len(cuda.gpus)} CUDA device(s) here")
+    missing = [i for i in device_indices(device) if i >= len(cuda.gpus)]
+    if missing:
+        raise ValueError(f"device {device!r}: only {len(cuda.gpus)} CUDA device(s) here "
+                         f"(indices 0..{len(cuda.gpus) - 1})")
 
 
 def memory_info(device: str) -> tuple[int, int] | None:
-    """``(free, total)`` bytes of the GPU ``device``; None where they are
-    not known (numba's CUDA simulator reports infinite memory)."""
-    with _Selected(device) as cuda:
-        free, total = cuda.current_context().get_memory_info()
+    """``(free, total)`` bytes of the GPU ``device`` (of several: the
+    least free and the least total of any, as every one takes an equal
+    share of the tasks); None where they are not known (numba's CUDA
+    simulator reports infinite memory)."""
+    free = total = float("inf")
+    for index in device_indices(device):
+        with _Selected(index) as cuda:
+            f, t = cuda.current_context().get_memory_info()
+        free, total = min(free, f), min(total, t)
     if not (np.isfinite(free) and np.isfinite(total)):
         return None
     return int(free), int(total)
 
 
-def _device_index(device: str) -> int:
-    name, _, idx = str(device).partition(":")
-    if name != "cuda" or (idx and not idx.isdigit()):
-        raise ValueError(f"device {device!r}: the 'cuda' kernel runs on cuda or cuda:N devices")
-    return int(idx or 0)
+def _parse_device(device: str) -> tuple[int, ...] | None:
+    """The indices ``device`` names (``None`` for ``cuda:all``); a
+    :class:`ValueError` naming it when it is none of the forms."""
+    name, sep, rest = str(device).partition(":")
+    if name == "cuda" and not sep:
+        return (0,)
+    if name == "cuda" and rest == "all":
+        return None
+    parts = rest.split(",")
+    if name != "cuda" or not all(p.isdigit() for p in parts):
+        raise ValueError(f"device {device!r}: the 'cuda' kernel runs on cuda, cuda:N, cuda:N,M,... "
+                         "or cuda:all devices")
+    indices = tuple(int(p) for p in parts)
+    if len(set(indices)) != len(indices):
+        raise ValueError(f"device {device!r}: a GPU named twice")
+    return indices
+
+
+def device_indices(device: str) -> tuple[int, ...]:
+    """The GPUs ``device`` names, as numba's indices: ``cuda`` is GPU 0,
+    ``cuda:1`` GPU 1, ``cuda:0,2`` GPUs 0 and 2, ``cuda:all`` every GPU
+    numba sees (those of ``CUDA_VISIBLE_DEVICES`` where it is set, as a
+    batch system sets it)."""
+    indices = _parse_device(device)
+    if indices is None:
+        cuda = _cuda()
+        indices = tuple(range(len(cuda.gpus))) if cuda.is_available() else ()
+        if not indices:
+            raise ValueError(f"device {device!r}: numba sees no CUDA GPU here (the 'cuda' kernel needs one)")
+    return indices
+
+
+#: the GPU each thread matches on, where a device names several
+_ASSIGNED = threading.local()
+_NEXT_THREAD = itertools.count()
+
+
+def _worker_offset() -> int:
+    """Where this process starts its threads' round of GPUs: the number
+    that ends its dask worker's name (a local cluster names its workers
+    0, 1, ...; dask-jobqueue ``<job>-<process>``), else 0 (the threaded
+    scheduler: one process)."""
+    try:
+        from distributed import get_worker
+
+        name = str(get_worker().name)
+    except (ImportError, ValueError):
+        return 0
+    digits = re.search(r"(\d+)$", name)
+    return int(digits.group(1)) if digits else 0
+
+
+def thread_device(device: str) -> int:
+    """The GPU index this thread matches on: the one ``device`` names, or,
+    where it names several, one of them kept by the thread for its life,
+    handed to threads in turn (16 threads on ``cuda:0,1,2,3``: 4 per GPU).
+
+    Each dask thread runs its tasks one after another, so a task's volume
+    stays on the GPU its thread holds, between :func:`cost_volume` and
+    :func:`best`."""
+    indices = device_indices(device)
+    if len(indices) == 1:
+        return indices[0]
+    held = getattr(_ASSIGNED, "held", None)
+    if held is None:
+        held = _ASSIGNED.held = {}
+    if indices not in held:
+        held[indices] = indices[(next(_NEXT_THREAD) + _worker_offset()) % len(indices)]
+    return held[indices]
 
 
 class _Selected:
-    """Context: the numba CUDA device ``device`` made current."""
+    """Context: the numba CUDA device of index ``index`` made current."""
 
-    def __init__(self, device: str):
-        self.index = _device_index(device)
+    def __init__(self, index: int):
+        self.index = index
 
     def __enter__(self):
         cuda = _cuda()
@@ -131,8 +210,9 @@ def _on_device(device: str, body):
     launch, upload and download, under one lock for the whole process: on
     an H100 with sixteen dask threads, 27 % of the matching tasks' stack
     samples stood there (``benchmarks/results/dsm_phases_gpu.json``)."""
-    with _Selected(device) as cuda:
-        space = _workspace(cuda, _device_index(device))
+    index = thread_device(device)
+    with _Selected(index) as cuda:
+        space = _workspace(cuda, index)
         return cuda.require_context(body)(cuda, space)
 
 
@@ -262,7 +342,7 @@ class DeviceVolume:
         ``"vol"`` buffer of its thread's workspace until :func:`best`
         gives it back.
     device : str
-        The device it lives on.
+        The GPU it lives on, ``cuda:N`` (one of those the run names).
     base, nvalid : numpy.ndarray
         The host arrays the volume was made with, and their device copies
         (``d_base``, ``d_nvalid``): :func:`best` reuses these when given
@@ -314,6 +394,8 @@ def cost_volume(
     lo, hi, ns = sample_plan(base_h, nvalid_h, half, details)
     pairs, pw = view_pairs(nv, pair_w)
     sample_k, zncc_k, fill_k, _, _ = _kernels()
+    # the GPU this thread holds, where ``device`` names several: the volume stays there
+    device = f"cuda:{thread_device(device)}"
 
     def body(cuda, space):
         stream = space.stream
@@ -427,7 +509,7 @@ def aggregate(
         space.give("S", "base_in", "nvalid_in")
         return host_S, n
 
-    host_S, n = _on_device(device, body)
+    host_S, n = _on_device(_where(cost, device), body)
     # absent candidates: +inf, as the CPU passes sum them
     host_S[np.arange(host_S.shape[2]) >= n[..., None]] = np.inf
     return host_S
@@ -456,5 +538,11 @@ def best(
             cost.held = []
         return host
 
-    host = _on_device(device, body)
+    host = _on_device(_where(cost, device), body)
     return host[0], host[1], host[2], host[3]
+
+
+def _where(cost, device: str) -> str:
+    """The GPU to aggregate on: a :class:`DeviceVolume`'s own, else
+    this thread's of ``device``."""
+    return cost.device if isinstance(cost, DeviceVolume) else device

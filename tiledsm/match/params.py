@@ -92,7 +92,9 @@ class SGVLLParams(StrictModel):
         compiled CUDA kernels, the volume kept on the GPU; the same
         heights bit for bit).
     device : str
-        Where the ``"cuda"`` kernel runs: ``"cuda"``, ``"cuda:1"``...
+        Where the ``"cuda"`` kernel runs: ``"cuda"``, ``"cuda:1"``...,
+        several GPUs ``"cuda:0,1"`` or ``"cuda:all"`` (each matching thread
+        keeps one of them; :func:`tiledsm.match.cuda_kernel.thread_device`)
         (``tiledsm dsm --device``); the other kernels run on the CPU
         (``"cpu"``).
     path_period : int
@@ -129,7 +131,8 @@ class SGVLLParams(StrictModel):
     path_period: int = Field(64, ge=0, description="semi-global paths restart every this many cells (0: never), "
                              "which makes tiles exact with this halo")
     kernel: str = Field("fast", description="implementation of the sweep and aggregation: fast, reference or cuda")
-    device: str = Field("cpu", description="where the cuda kernel runs: cuda, cuda:N; the others run on the cpu",
+    device: str = Field("cpu", description="where the cuda kernel runs: cuda, cuda:N, several GPUs cuda:N,M,... "
+                        "or cuda:all; the others run on the cpu",
                         json_schema_extra=option("--device"))
 
     @model_validator(mode="before")
