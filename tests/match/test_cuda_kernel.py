@@ -207,3 +207,19 @@ def test_threads_take_the_gpus_in_turn_and_keep_theirs(monkeypatch):
     t.start()
     t.join()
     assert first == [1]
+
+
+def test_each_worker_of_a_cluster_starts_its_round_at_its_number():
+    """A local cluster (on 127.0.0.1) names its workers 0, 1: a task on
+    each gets its worker's number, so the first threads of the two take
+    different GPUs; outside a worker the round starts at 0."""
+    from distributed import Client, LocalCluster
+
+    from tiledsm.match import cuda_kernel as ck
+
+    assert ck._worker_offset() == 0
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, protocol="tcp", host="127.0.0.1",
+                      dashboard_address=None) as cluster, Client(cluster) as client:
+        got = {name: client.submit(ck._worker_offset, workers=[addr], pure=False).result()
+               for addr, name in ((a, w.name) for a, w in cluster.scheduler.workers.items())}
+    assert got == {0: 0, 1: 1}

@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import itertools
 import re
+import sys
 import threading
 from dataclasses import dataclass, field
 
@@ -154,11 +155,10 @@ def _worker_offset() -> int:
     that ends its dask worker's name (a local cluster names its workers
     0, 1, ...; dask-jobqueue ``<job>-<process>``), else 0 (the threaded
     scheduler: one process)."""
+    worker = sys.modules.get("distributed")  # a worker process has it; threads need not import it
     try:
-        from distributed import get_worker
-
-        name = str(get_worker().name)
-    except (ImportError, ValueError):
+        name = str(worker.get_worker().name) if worker is not None else ""
+    except ValueError:  # not in a worker
         return 0
     digits = re.search(r"(\d+)$", name)
     return int(digits.group(1)) if digits else 0
