@@ -598,14 +598,23 @@ def gpu_phases() -> str:
     doc = json.loads((RESULTS / "dsm_phases_gpu.json").read_text())
     runs = {r["device"]: r for r in doc["rows"]}
     order = [d for d in ("cuda", "cpu") if d in runs]
+    head_of = {"cuda": "GPU, 16 threads", "cpu": "16 CPU threads"}
     names = [p["phase"] for p in runs[order[0]]["phases"]]
     rows = [[name] + [f"{next(p['wall_s'] for p in runs[d]['phases'] if p['phase'] == name):.1f} s" for d in order]
             for name in names]
     rows.append(["**whole command**"] + [f"**{runs[d]['wall_s']:.1f} s**" for d in order])
-    head = ["phase"] + [{"cuda": "GPU, 16 threads", "cpu": "16 CPU threads"}[d] for d in order]
+    bounds = []
+    for d in order:
+        r = runs[d]
+        outside = sum(p["wall_s"] for p in r["phases"] if not p["phase"].startswith("matching graph"))
+        cells = r["mcells_per_s"] * r["wall_s"]  # Mcells of the grid
+        bounds.append(f"{head_of[d]}: {outside:.1f} s outside the matching graph, so at most "
+                      f"{cells / outside:.1f} Mcells/s of wall with a graph that took no time")
+    head = ["phase"] + [head_of[d] for d in order]
     text = (f"Where the time of one 4096² run goes on that machine (`benchmarks/dsm_phases.py --workers 16 "
             f"--device cuda --stacks 100`, then `--device cpu`; the sampling slows each run; tree: {doc['tree']}):\n\n"
-            + _table(head, rows))
+            + _table(head, rows) + "\nThe fixed costs bound the whole command's rate whatever the matching's speed: "
+            + "; ".join(bounds) + ".\n")
     waits = runs.get("cuda", {}).get("graph", {}).get("stack_waits")
     if waits:
         text += ("\nWhere the GPU run's matching tasks waited, as shares of the stack samples taken inside them: "
