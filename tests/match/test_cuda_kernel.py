@@ -171,42 +171,42 @@ def test_device_names_one_or_several_gpus(monkeypatch):
 def test_threads_take_the_gpus_in_turn_and_keep_theirs(monkeypatch):
     """Eight threads on four GPUs: two on each, every thread always on
     the same one (its volume stays where it was made); a process whose
-    dask worker is named 1 starts its round one GPU further."""
+    dask worker is named 1 starts its round one GPU further. (Each thread
+    returns what it saw: an assertion inside a thread would not fail the
+    test.)"""
+    import itertools
     import threading
 
     from tiledsm.match import cuda_kernel as ck
 
     monkeypatch.setattr(ck, "_cuda", lambda: _FakeCuda(4))
 
-    def held_by_threads(offset: int) -> list[int]:
+    def held_by_threads(offset: int, threads: int = 8) -> list[tuple[int, ...]]:
         monkeypatch.setattr(ck, "_worker_offset", lambda: offset)
-        monkeypatch.setattr(ck, "_NEXT_THREAD", __import__("itertools").count())
-        got, start = [], threading.Barrier(8)
+        monkeypatch.setattr(ck, "_NEXT_THREAD", itertools.count())
+        seen: list[tuple[int, ...]] = []
+        start = threading.Barrier(threads)
 
         def work():
             start.wait()
-            first = ck.thread_device("cuda:all")
-            assert all(ck.thread_device("cuda:all") == first for _ in range(5))
-            assert ck.thread_device("cuda:2") == 2  # one GPU named: that one
-            got.append(first)
+            seen.append(tuple(ck.thread_device("cuda:all") for _ in range(6)) + (ck.thread_device("cuda:2"),))
 
-        threads = [threading.Thread(target=work) for _ in range(8)]
-        for t in threads:
+        pool = [threading.Thread(target=work) for _ in range(threads)]
+        for t in pool:
             t.start()
-        for t in threads:
+        for t in pool:
             t.join()
-        return got
+        assert len(seen) == threads
+        return seen
 
-    assert sorted(held_by_threads(0)) == [0, 0, 1, 1, 2, 2, 3, 3]
-    assert sorted(held_by_threads(1)) == [0, 0, 1, 1, 2, 2, 3, 3]
+    for offset in (0, 1):
+        seen = held_by_threads(offset)
+        assert all(len(set(s[:6])) == 1 for s in seen)  # a thread keeps its GPU
+        assert all(s[6] == 2 for s in seen)  # one GPU named: that one
+        assert sorted(s[0] for s in seen) == [0, 0, 1, 1, 2, 2, 3, 3]
     # the process's first thread: its worker's number decides where it starts
-    monkeypatch.setattr(ck, "_NEXT_THREAD", __import__("itertools").count())
-    monkeypatch.setattr(ck, "_worker_offset", lambda: 1)
-    first: list[int] = []
-    t = threading.Thread(target=lambda: first.append(ck.thread_device("cuda:0,1,2,3")))
-    t.start()
-    t.join()
-    assert first == [1]
+    assert held_by_threads(1, threads=1)[0][0] == 1
+    assert held_by_threads(0, threads=1)[0][0] == 0
 
 
 def test_each_worker_of_a_cluster_starts_its_round_at_its_number():

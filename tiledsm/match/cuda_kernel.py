@@ -91,7 +91,7 @@ def check_device(device: str) -> None:
     _parse_device(device)
     cuda = _cuda()
     if not cuda.is_available():
-        raise ValueError(f"device {device!r}: numba sees no CUDA GPU here (the 'cuda' kernel needs one)")
+        raise _no_gpu(device)
     missing = [i for i in device_indices(device) if i >= len(cuda.gpus)]
     if missing:
         raise ValueError(f"device {device!r}: only {len(cuda.gpus)} CUDA device(s) here "
@@ -141,8 +141,12 @@ def device_indices(device: str) -> tuple[int, ...]:
         cuda = _cuda()
         indices = tuple(range(len(cuda.gpus))) if cuda.is_available() else ()
         if not indices:
-            raise ValueError(f"device {device!r}: numba sees no CUDA GPU here (the 'cuda' kernel needs one)")
+            raise _no_gpu(device)
     return indices
+
+
+def _no_gpu(device: str) -> ValueError:
+    return ValueError(f"device {device!r}: numba sees no CUDA GPU here (the 'cuda' kernel needs one)")
 
 
 #: the GPU each thread matches on, where a device names several
